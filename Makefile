@@ -1,0 +1,51 @@
+# posediff — every target but `install` uses the virtual environment in .venv/.
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+
+PYTHON_BOOT ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+PY := $(VENV)/bin/python
+APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libgles2
+
+help: ## list the targets
+	@grep -E '^[a-zA-Z_-]+:.*?## .*$$' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*?## "}; {printf "  \033[36m%-14s\033[0m %s\n", $$1, $$2}'
+
+install: system-deps $(VENV)/bin/activate ## create .venv and install posediff editable with its dev extras
+	$(PY) -m pip install --disable-pip-version-check -q -e '.[dev]'
+	$(VENV)/bin/posediff --help > /dev/null
+	@echo "posediff installed in $(VENV)"
+
+$(VENV)/bin/activate:
+	$(PYTHON_BOOT) -m venv $(VENV)
+
+system-deps: ## Mesa's EGL for offscreen rendering (apt, as root; skipped with a note otherwise)
+	@if [ "$$(id -u)" = "0" ] && command -v apt-get > /dev/null; then \
+	  export DEBIAN_FRONTEND=noninteractive; \
+	  apt-get install -y -q --no-install-recommends $(APT_PACKAGES) > /dev/null 2>&1 \
+	  || { apt-get update -q > /dev/null && apt-get install -y -q --no-install-recommends $(APT_PACKAGES) > /dev/null; }; \
+	  echo "system packages present: $(APT_PACKAGES)"; \
+	else \
+	  echo "note: not root or no apt-get; make sure these are installed: $(APT_PACKAGES)"; \
+	fi
+
+test: ## the default test suite (not slow, not gpu)
+	$(PY) -m pytest -q
+
+test-all: ## every test, slow ones included
+	$(PY) -m pytest -q -m "not gpu"
+
+bench: ## time the Lie group ops against peer libraries (writes benchmarks/results/lie_ops.json)
+	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/lie_ops.py
+
+notebooks: ## run the notebooks in fast mode
+	$(PY) -m pytest -q -m notebooks tests/test_notebooks.py
+
+lint: ## ruff check + format check
+	$(PY) -m ruff check src tests benchmarks notebooks
+	$(PY) -m ruff format --check src tests benchmarks notebooks
+
+clean: ## remove caches and outputs (keeps .venv)
+	rm -rf .pytest_cache outputs multirun build dist
+	find . -name __pycache__ -type d -prune -exec rm -rf {} +
+
+.PHONY: help install system-deps test test-all bench notebooks lint clean

@@ -1,0 +1,16 @@
+"""posediff: 6D object pose as a distribution, by score-based diffusion on Lie groups.
+
+Implements Hsiao et al., "Confronting Ambiguity in 6D Object Pose Estimation via Score-Based
+Diffusion on SE(3)" (CVPR 2024).
+"""
+
+from .lie import R3SO3 as R3SO3
+from .lie import SE2 as SE2
+from .lie import SE3 as SE3
+from .lie import SO3 as SO3
+from .lie import LieGroup as LieGroup
+from .lie import get_group as get_group
+
+__version__ = "0.1.0"
+
+__all__ = ["LieGroup", "SO3", "R3SO3", "SE3", "SE2", "get_group", "__version__"]
