@@ -1,0 +1,129 @@
+"""``posediff <command> [overrides]``: a thin layer over Hydra that dispatches to ``posediff.tasks``.
+
+Each command that takes configuration has a primary config ``conf/<command>.yaml`` and accepts
+everything Hydra does (``key=value`` overrides, ``-m`` multirun, ``--cfg job``, ``--help``).
+"""
+
+import os
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+_PKG = Path(__file__).resolve().parent
+
+
+@dataclass(frozen=True)
+class Command:
+    help: str
+    config: str | None  # primary Hydra config name; None for commands that take no config
+
+
+COMMANDS: dict[str, Command] = {
+    "groups": Command("list the registered Lie groups and their tensor layouts", None),
+    "check": Command("run the Lie group contract on a group from config: posediff check group=so3", "check"),
+}
+
+
+def config_dir() -> Path:
+    """Where the Hydra configs live: $POSEDIFF_CONFIG_DIR, the repository's conf/, or the packaged copy."""
+    env = os.environ.get("POSEDIFF_CONFIG_DIR")
+    if env:
+        return Path(env).resolve()
+    repo = _PKG.parents[1] / "conf"
+    if (repo / "check.yaml").exists():
+        return repo
+    return _PKG / "_conf"
+
+
+def usage() -> str:
+    width = max(map(len, COMMANDS))
+    lines = [
+        "usage: posediff <command> [key=value ...] [-m] [--help]",
+        "",
+        "posediff: 6D object pose as a distribution, by score-based diffusion on Lie groups.",
+        "",
+        "commands:",
+        *(f"  {name:<{width}}  {cmd.help}" for name, cmd in COMMANDS.items()),
+        "",
+        "`posediff <command> --help` shows a command's configuration options (Hydra).",
+    ]
+    return "\n".join(lines)
+
+
+def _fail(message: str, code: int = 2) -> int:
+    print(f"posediff: {message}", file=sys.stderr)
+    return code
+
+
+def _unknown_config_choice(args: Sequence[str], conf: Path) -> str | None:
+    """A one-line error for ``group=nope`` style overrides that name no config file."""
+    if any(a.startswith("hydra.searchpath") for a in args):
+        return None  # options may come from elsewhere; let Hydra decide
+    for arg in args:
+        if arg.startswith(("-", "+", "~")) or "=" not in arg:
+            continue
+        key, value = arg.split("=", 1)
+        folder = conf / key
+        if "." in key or not folder.is_dir() or "," in value or value in ("null", ""):
+            continue
+        options = sorted(p.stem for p in folder.glob("*.yaml"))
+        if value not in options:
+            return f"unknown {key} {value!r}; available: {', '.join(options)}"
+    return None
+
+
+def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
+    import hydra
+    from omegaconf import DictConfig
+
+    from . import tasks
+
+    task: Callable[[DictConfig], int] = {"check": tasks.check_group}[name]
+    conf = config_dir()
+    if not (conf / f"{cmd.config}.yaml").exists():
+        return _fail(f"no config {cmd.config}.yaml in {conf} (set POSEDIFF_CONFIG_DIR to a posediff conf/ folder)")
+    problem = _unknown_config_choice(args, conf)
+    if problem:
+        return _fail(problem)
+    result: dict[str, int] = {}
+
+    def _main(cfg: DictConfig) -> None:
+        result["code"] = task(cfg)
+
+    argv = sys.argv
+    sys.argv = [f"posediff {name}", *args]
+    try:
+        hydra.main(config_path=str(conf), config_name=cmd.config, version_base="1.3")(_main)()
+    finally:
+        sys.argv = argv
+    return result.get("code", 0)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args or args[0] in ("-h", "--help", "help"):
+        print(usage())
+        return 0
+    name, rest = args[0], args[1:]
+    cmd = COMMANDS.get(name)
+    if cmd is None:
+        return _fail(f"unknown command {name!r}; available: {', '.join(COMMANDS)} (see posediff --help)")
+    if cmd.config is None:
+        if rest and rest[0] in ("-h", "--help"):
+            print(f"posediff {name}: {cmd.help}")
+            return 0
+        if rest:
+            return _fail(f"{name} takes no arguments, got {' '.join(rest)}")
+        from . import tasks
+
+        return tasks.list_groups()
+    return _run_hydra(name, cmd, rest)
+
+
+def entrypoint() -> None:
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    entrypoint()
