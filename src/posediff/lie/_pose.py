@@ -3,7 +3,7 @@
 import torch
 from torch import Tensor
 
-from .so3 import project_rotation, rotation_error, skew, uniform_rotation, unskew
+from .so3 import Mat3, Vec3, project_rotation, rotation_error, skew, stack_entries, uniform_rotation, unskew
 
 
 def make_pose(R: Tensor, t: Tensor) -> Tensor:
@@ -76,3 +76,16 @@ def pose_hat(xi: Tensor) -> Tensor:
 def pose_vee(X: Tensor) -> Tensor:
     """``[[φ×, ρ], [0, 0]]`` → ``[ρ, φ]``."""
     return torch.cat([X[..., :3, 3], unskew(X[..., :3, :3])], dim=-1)
+
+
+def pose_from_entries(R: Mat3, t: Vec3) -> Tensor:
+    """A ``(*b, 4, 4)`` pose from the 9 rotation and 3 translation entries, in one write."""
+    o = torch.zeros_like(t[0])
+    i = torch.ones_like(t[0])
+    return stack_entries([*R[0:3], t[0], *R[3:6], t[1], *R[6:9], t[2], o, o, o, i], 4, 4)
+
+
+def pose_entries(g: Tensor) -> tuple[Mat3, Vec3]:
+    """The 9 rotation and 3 translation entries of a ``(*b, 4, 4)`` pose."""
+    e = g.flatten(-2).unbind(-1)
+    return (e[0], e[1], e[2], e[4], e[5], e[6], e[8], e[9], e[10]), (e[3], e[7], e[11])

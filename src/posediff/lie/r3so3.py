@@ -14,7 +14,9 @@ from ._pose import (
     block_matrix,
     make_pose,
     pose_act,
+    pose_entries,
     pose_error,
+    pose_from_entries,
     pose_hat,
     pose_vee,
     project_pose,
@@ -22,7 +24,7 @@ from ._pose import (
     uniform_pose,
 )
 from .base import LieGroup
-from .so3 import exp_so3, left_jacobian_inv_so3, left_jacobian_so3, log_so3, skew
+from .so3 import exp_so3_entries, left_jacobian_inv_so3, left_jacobian_so3, log_so3, log_so3_entries, matmul3, skew
 
 
 class R3SO3(LieGroup, name="r3so3"):
@@ -34,18 +36,23 @@ class R3SO3(LieGroup, name="r3so3"):
 
     @classmethod
     def _exp(cls, xi: Tensor) -> Tensor:
-        return make_pose(exp_so3(xi[..., 3:]), xi[..., :3])
+        e = xi.unbind(-1)
+        return pose_from_entries(exp_so3_entries(e[3:]), e[:3])  # type: ignore[arg-type]
 
     @classmethod
     def _log(cls, g: Tensor) -> Tensor:
-        R, t = split_pose(g)
-        return torch.cat([t, log_so3(R)], dim=-1)
+        R, t = pose_entries(g)
+        return torch.stack([*t, *log_so3_entries(R)], dim=-1)
 
     @classmethod
     def _compose(cls, g: Tensor, h: Tensor) -> Tensor:
-        Rg, tg = split_pose(g)
-        Rh, th = split_pose(h)
-        return make_pose(Rg @ Rh, tg + th)
+        Rg, tg = pose_entries(g)
+        Rh, th = pose_entries(h)
+        if torch.compiler.is_compiling():  # entrywise: one fused kernel instead of a batched GEMM
+            R = matmul3(Rg, Rh)
+        else:
+            R = tuple((g[..., :3, :3] @ h[..., :3, :3]).flatten(-2).unbind(-1))
+        return pose_from_entries(R, (tg[0] + th[0], tg[1] + th[1], tg[2] + th[2]))
 
     @classmethod
     def _inverse(cls, g: Tensor) -> Tensor:

@@ -22,7 +22,9 @@ from ._pose import (
     block_matrix,
     make_pose,
     pose_act,
+    pose_entries,
     pose_error,
+    pose_from_entries,
     pose_hat,
     pose_vee,
     project_pose,
@@ -30,7 +32,7 @@ from ._pose import (
     uniform_pose,
 )
 from .base import LieGroup
-from .so3 import log_so3, quadratic_form, skew, theta2_of
+from .so3 import cross, log_so3_entries, matmul3, matvec3, quadratic_entries, quadratic_form, skew, theta2_of
 
 
 def q_block(rho: Tensor, phi: Tensor) -> Tensor:
@@ -58,24 +60,35 @@ class SE3(LieGroup, name="se3"):
 
     @classmethod
     def _exp(cls, xi: Tensor) -> Tensor:
-        rho, phi = xi[..., :3], xi[..., 3:]
+        e = xi.unbind(-1)
+        rho, phi = e[:3], e[3:]
         ang = Angle(theta2_of(phi))
-        b = ang.B()
-        R = quadratic_form(phi, ang.A(), b)
-        w = torch.linalg.cross(phi, rho)
+        a, b, c = ang.A(), ang.B(), ang.C()
+        w = cross(phi, rho)
+        ww = cross(phi, w)
         # t = J_l(φ) ρ = ρ + B φ×ρ + C φ×(φ×ρ)
-        t = rho + b.unsqueeze(-1) * w + ang.C().unsqueeze(-1) * torch.linalg.cross(phi, w)
-        return make_pose(R, t)
+        t = tuple(rho[i] + b * w[i] + c * ww[i] for i in range(3))
+        return pose_from_entries(quadratic_entries(phi, a, b), t)  # type: ignore[arg-type]
 
     @classmethod
     def _log(cls, g: Tensor) -> Tensor:
-        R, t = split_pose(g)
-        phi = log_so3(R)
+        R, t = pose_entries(g)
+        phi = log_so3_entries(R)
         d = Angle(theta2_of(phi)).D()
-        w = torch.linalg.cross(phi, t)
+        w = cross(phi, t)
+        ww = cross(phi, w)
         # ρ = J_l⁻¹(φ) t = t − ½ φ×t + D φ×(φ×t)
-        rho = t - 0.5 * w + d.unsqueeze(-1) * torch.linalg.cross(phi, w)
-        return torch.cat([rho, phi], dim=-1)
+        rho = [t[i] - 0.5 * w[i] + d * ww[i] for i in range(3)]
+        return torch.stack([*rho, *phi], dim=-1)
+
+    @classmethod
+    def _compose(cls, g: Tensor, h: Tensor) -> Tensor:
+        if torch.compiler.is_compiling():  # entrywise: one fused kernel instead of a batched GEMM
+            Rg, tg = pose_entries(g)
+            Rh, th = pose_entries(h)
+            t = matvec3(Rg, th)
+            return pose_from_entries(matmul3(Rg, Rh), (t[0] + tg[0], t[1] + tg[1], t[2] + tg[2]))
+        return g @ h
 
     @classmethod
     def _inverse(cls, g: Tensor) -> Tensor:

@@ -14,6 +14,8 @@ Closed forms (Solà et al. 2018; paper supplement "Left and Right Jacobians on S
 The helpers in this module are shared by R3SO3, SE3 and the score code.
 """
 
+from collections.abc import Sequence
+
 import torch
 from torch import Tensor
 
@@ -24,11 +26,21 @@ from .base import LieGroup
 _LOG_SMALL_S2 = 1e-6
 
 
+Vec3 = tuple[Tensor, Tensor, Tensor]
+#: a 3×3 matrix as its 9 entries, row-major
+Mat3 = tuple[Tensor, ...]
+
+
+def stack_entries(entries: Sequence[Tensor], rows: int, cols: int) -> Tensor:
+    """Entries (row-major, broadcast against each other) → ``(*b, rows, cols)`` in one write."""
+    return torch.stack(torch.broadcast_tensors(*entries), dim=-1).unflatten(-1, (rows, cols))
+
+
 def skew(v: Tensor) -> Tensor:
     """``(*b, 3)`` → ``(*b, 3, 3)`` with ``skew(v) @ w = v × w``."""
     x, y, z = v.unbind(-1)
     o = torch.zeros_like(x)
-    return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).unflatten(-1, (3, 3))
+    return stack_entries([o, -z, y, z, o, -x, -y, x, o], 3, 3)
 
 
 def unskew(m: Tensor) -> Tensor:
@@ -38,29 +50,57 @@ def unskew(m: Tensor) -> Tensor:
     )
 
 
-def quadratic_form(phi: Tensor, a: Tensor, b: Tensor) -> Tensor:
-    """``I + a K + b K²`` with K = φ×, written entrywise (K² = φφᵀ − θ² I); ``a``, ``b`` are ``(*b,)``."""
-    x, y, z = phi.unbind(-1)
-    xx, yy, zz = x * x, y * y, z * z
-    bxy, bxz, byz = b * x * y, b * x * z, b * y * z
-    ax, ay, az = a * x, a * y, a * z
-    entries = [
-        1.0 - b * (yy + zz), bxy - az, bxz + ay,
-        bxy + az, 1.0 - b * (xx + zz), byz - ax,
-        bxz - ay, byz + ax, 1.0 - b * (xx + yy),
-    ]  # fmt: skip
-    return torch.stack(entries, dim=-1).unflatten(-1, (3, 3))
+def cross(a: Vec3, b: Vec3) -> Vec3:
+    """``a × b`` on component tuples."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-def theta2_of(phi: Tensor) -> Tensor:
+def matmul3(a: Mat3, b: Mat3) -> Mat3:
+    """Product of two 3×3 matrices given as entry tuples (what ``torch.compile`` fuses best)."""
+    return tuple(
+        a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j] for i in range(3) for j in range(3)
+    )
+
+
+def matvec3(a: Mat3, v: Vec3) -> Vec3:
+    return (
+        a[0] * v[0] + a[1] * v[1] + a[2] * v[2],
+        a[3] * v[0] + a[4] * v[1] + a[5] * v[2],
+        a[6] * v[0] + a[7] * v[1] + a[8] * v[2],
+    )
+
+
+def theta2_of(phi: Tensor | Vec3) -> Tensor:
     """|φ|², written out (faster than a reduction on a trailing dim of 3)."""
-    x, y, z = phi.unbind(-1)
+    x, y, z = phi.unbind(-1) if isinstance(phi, Tensor) else phi
     return x * x + y * y + z * z
 
 
-def exp_so3(phi: Tensor) -> Tensor:
+def quadratic_entries(phi: Vec3, a: Tensor, b: Tensor) -> Mat3:
+    """Entries of ``I + a K + b K²`` with K = φ× (K² = φφᵀ − θ² I); ``a``, ``b`` are ``(*b,)``."""
+    x, y, z = phi
+    xx, yy, zz = x * x, y * y, z * z
+    bxy, bxz, byz = b * x * y, b * x * z, b * y * z
+    ax, ay, az = a * x, a * y, a * z
+    return (
+        1.0 - b * (yy + zz), bxy - az, bxz + ay,
+        bxy + az, 1.0 - b * (xx + zz), byz - ax,
+        bxz - ay, byz + ax, 1.0 - b * (xx + yy),
+    )  # fmt: skip
+
+
+def quadratic_form(phi: Tensor, a: Tensor, b: Tensor) -> Tensor:
+    """``I + a K + b K²`` as ``(*b, 3, 3)``."""
+    return stack_entries(quadratic_entries(phi.unbind(-1), a, b), 3, 3)
+
+
+def exp_so3_entries(phi: Vec3) -> Mat3:
     ang = Angle(theta2_of(phi))
-    return quadratic_form(phi, ang.A(), ang.B())
+    return quadratic_entries(phi, ang.A(), ang.B())
+
+
+def exp_so3(phi: Tensor) -> Tensor:
+    return stack_entries(exp_so3_entries(phi.unbind(-1)), 3, 3)
 
 
 def left_jacobian_so3(phi: Tensor) -> Tensor:
@@ -75,7 +115,12 @@ def left_jacobian_inv_so3(phi: Tensor) -> Tensor:
 
 def log_so3(R: Tensor) -> Tensor:
     """Principal rotation vector of ``R``; exact to round-off for every angle including π."""
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = R.flatten(-2).unbind(-1)
+    return torch.stack(log_so3_entries(tuple(R.flatten(-2).unbind(-1))), dim=-1)
+
+
+def log_so3_entries(r: Mat3) -> Vec3:
+    """``log_so3`` on the 9 entries of R (row-major), returning the 3 components of φ."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
     vx, vy, vz = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)
     c = (0.5 * (r00 + r11 + r22 - 1.0)).clamp(-1.0, 1.0)
     s2 = vx * vx + vy * vy + vz * vz
@@ -88,26 +133,25 @@ def log_so3(R: Tensor) -> Tensor:
     generic = ~(small | near_pi)
     s_safe = torch.where(generic, s, torch.ones_like(s))
     factor = torch.where(small, series("asin", s2, terms=5), theta / s_safe)
-    phi_small = torch.stack([vx, vy, vz], dim=-1) * factor.unsqueeze(-1)
 
-    # θ ≥ π/2: a aᵀ = ((R + Rᵀ)/2 − c I) / (1 − c); take the row with the largest diagonal.
-    d = torch.where(near_pi, 1.0 - c, torch.ones_like(c))
-    b00, b11, b22 = (r00 - c) / d, (r11 - c) / d, (r22 - c) / d
-    b01, b02, b12 = 0.5 * (r01 + r10) / d, 0.5 * (r02 + r20) / d, 0.5 * (r12 + r21) / d
-    k0 = (b00 >= b11) & (b00 >= b22)
-    k1 = ~k0 & (b11 >= b22)
-    k2 = ~(k0 | k1)
-    one = torch.ones_like(c)
-    n0 = torch.where(k0 & near_pi, b00, one).sqrt()
-    n1 = torch.where(k1 & near_pi, b11, one).sqrt()
-    n2 = torch.where(k2 & near_pi, b22, one).sqrt()
-    ax = torch.where(k0, b00 / n0, torch.where(k1, b01 / n1, b02 / n2))
-    ay = torch.where(k0, b01 / n0, torch.where(k1, b11 / n1, b12 / n2))
-    az = torch.where(k0, b02 / n0, torch.where(k1, b12 / n1, b22 / n2))
-    sign = torch.where(ax * vx + ay * vy + az * vz < 0.0, -one, one)
-    phi_pi = torch.stack([ax, ay, az], dim=-1) * (sign * theta).unsqueeze(-1)
-
-    return torch.where(near_pi.unsqueeze(-1), phi_pi, phi_small)
+    # θ ≥ π/2: a aᵀ = ((R + Rᵀ)/2 − c I) / (1 − c); take the row k with the largest diagonal,
+    # a = row_k / sqrt(diag_k). The common factor 1/(1 − c) cancels except in sqrt(diag_k).
+    e00, e11, e22 = r00 - c, r11 - c, r22 - c
+    e01, e02, e12 = 0.5 * (r01 + r10), 0.5 * (r02 + r20), 0.5 * (r12 + r21)
+    k0 = (e00 >= e11) & (e00 >= e22)
+    k1 = ~k0 & (e11 >= e22)
+    ekk = torch.where(k0, e00, torch.where(k1, e11, e22))
+    # (1 − c) · diag_k ≥ (1 − c)/3 ≥ 1/3 on this branch; elsewhere a safe dummy value.
+    inv_norm = torch.where(near_pi, ekk * (1.0 - c), torch.ones_like(c)).rsqrt()
+    ax = torch.where(k0, e00, torch.where(k1, e01, e02)) * inv_norm
+    ay = torch.where(k0, e01, torch.where(k1, e11, e12)) * inv_norm
+    az = torch.where(k0, e02, torch.where(k1, e12, e22)) * inv_norm
+    scale = torch.where(ax * vx + ay * vy + az * vz < 0.0, -theta, theta)
+    return (
+        torch.where(near_pi, ax * scale, vx * factor),
+        torch.where(near_pi, ay * scale, vy * factor),
+        torch.where(near_pi, az * scale, vz * factor),
+    )
 
 
 def rotation_error(R: Tensor) -> Tensor:
@@ -138,7 +182,7 @@ def uniform_rotation(
         2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
         2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
     ]  # fmt: skip
-    return torch.stack(entries, dim=-1).unflatten(-1, (3, 3))
+    return stack_entries(entries, 3, 3)
 
 
 class SO3(LieGroup, name="so3"):
@@ -155,6 +199,12 @@ class SO3(LieGroup, name="so3"):
     @classmethod
     def _log(cls, g: Tensor) -> Tensor:
         return log_so3(g)
+
+    @classmethod
+    def _compose(cls, g: Tensor, h: Tensor) -> Tensor:
+        if torch.compiler.is_compiling():  # entrywise: one fused kernel instead of a batched GEMM
+            return stack_entries(matmul3(tuple(g.flatten(-2).unbind(-1)), tuple(h.flatten(-2).unbind(-1))), 3, 3)
+        return g @ h
 
     @classmethod
     def _inverse(cls, g: Tensor) -> Tensor:
