@@ -34,8 +34,19 @@ test: ## the default test suite (not slow, not gpu)
 test-all: ## every test, slow ones included
 	$(PY) -m pytest -q -m "not gpu"
 
+demo: ## the Lie group walk-through (notebooks/01) in full mode; figures in outputs/demo/
+	$(VENV)/bin/posediff groups
+	POSEDIFF_FAST=0 POSEDIFF_NOTEBOOK_OUT=outputs/demo MPLBACKEND=Agg $(PY) notebooks/01_lie_groups.py
+	@echo "figures: $$(ls outputs/demo/*.png)"
+
+figures: ## regenerate the README figure (docs/images/)
+	POSEDIFF_FAST=0 POSEDIFF_NOTEBOOK_OUT=docs/images MPLBACKEND=Agg $(PY) notebooks/01_lie_groups.py
+
 bench: ## time the Lie group ops against peer libraries (writes benchmarks/results/lie_ops.json)
 	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/lie_ops.py
+
+bench-tuned: ## the same with glibc keeping large blocks (writes benchmarks/results/lie_ops_tuned_malloc.json)
+	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/lie_ops.py --tuned-malloc
 
 notebooks: ## run the notebooks in fast mode
 	$(PY) -m pytest -q -m notebooks tests/test_notebooks.py
@@ -48,4 +59,4 @@ clean: ## remove caches and outputs (keeps .venv)
 	rm -rf .pytest_cache outputs multirun build dist
 	find . -name __pycache__ -type d -prune -exec rm -rf {} +
 
-.PHONY: help install system-deps test test-all bench notebooks lint clean
+.PHONY: help install system-deps test test-all demo figures bench bench-tuned notebooks lint clean

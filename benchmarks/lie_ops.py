@@ -2,6 +2,7 @@
 
     OMP_WAIT_POLICY=PASSIVE python benchmarks/lie_ops.py            # N = 10⁶, float32, 2 threads
     python benchmarks/lie_ops.py --n 100000 --repeats 5 --no-compiled  # a quick look
+    OMP_WAIT_POLICY=PASSIVE python benchmarks/lie_ops.py --tuned-malloc  # glibc keeps big blocks
 
 Every implementation is timed on the same inputs in the same run, interleaved round by round, and
 the median is reported as millions of elements per second (Melem/s). Peers are timed in their own
@@ -9,6 +10,13 @@ native element type (kornia/pypose/roma keep quaternions; posediff keeps matrice
 converted before timing starts. ``posediff`` is the eager kernel, ``posediff[compiled]`` the
 same kernel through ``torch.compile`` (``LieGroup(compiled=True)``; its compile time is reported
 apart and not counted). Results: a table on stdout and ``benchmarks/results/lie_ops.json``.
+
+At N = 10⁶ a posediff output is 36 MB (SO3) or 64 MB (SE3) of fresh memory; glibc hands blocks
+above 32 MB out by ``mmap`` and every call then pays ~2 µs per 4 KiB page in page faults (~24 ms
+for 64 MB), which peers with 4- or 7-float quaternion outputs avoid. ``--tuned-malloc`` re-runs
+the whole comparison (every library alike) with glibc told to keep such blocks on the heap
+(``MALLOC_MMAP_THRESHOLD_``/``MALLOC_TRIM_THRESHOLD_``, the effect jemalloc/tcmalloc have, as
+PyTorch's CPU tuning guide recommends) and writes ``lie_ops_tuned_malloc.json``.
 """
 
 import argparse
@@ -31,6 +39,8 @@ from posediff.lie import R3SO3, SE3, SO3
 
 warnings.filterwarnings("ignore")
 RESULTS = Path(__file__).resolve().parent / "results" / "lie_ops.json"
+TUNED = RESULTS.with_name("lie_ops_tuned_malloc.json")
+MALLOC_ENV = {"MALLOC_MMAP_THRESHOLD_": str(1 << 40), "MALLOC_TRIM_THRESHOLD_": str(1 << 40)}
 GOAL = 1.5
 
 
@@ -44,7 +54,9 @@ def _peers_available() -> dict[str, Any]:
     return mods
 
 
-def build_cases(n: int, compiled: bool, peers: dict[str, Any]) -> dict[tuple[str, str], dict[str, Callable[[], Any]]]:
+def build_cases(
+    n: int, compiled: bool, peers: dict[str, Any]
+) -> dict[tuple[str, str], dict[str, Callable[[], Any]]]:
     """(group, op) → {implementation: zero-argument callable}, inputs prepared beforehand."""
     gen = torch.Generator().manual_seed(0)
     f32 = torch.float32
@@ -63,7 +75,8 @@ def build_cases(n: int, compiled: bool, peers: dict[str, Any]) -> dict[tuple[str
         impls = cases.setdefault((group_name, op), {})
         impls["posediff"] = lambda: getattr(group_cls(), op)(*args)
         if compiled:
-            impls["posediff[compiled]"] = lambda g=group_cls(compiled=True): getattr(g, op)(*args)
+            fused = group_cls(compiled=True)
+            impls["posediff[compiled]"] = lambda: getattr(fused, op)(*args)
 
     ours("so3", SO3, "exp", phi)
     ours("so3", SO3, "log", R1)
@@ -89,7 +102,9 @@ def build_cases(n: int, compiled: bool, peers: dict[str, Any]) -> dict[tuple[str
     if "pytorch_kinematics" in peers:
         pk = peers["pytorch_kinematics"]
         cases["so3", "exp"]["pytorch_kinematics"] = lambda: pk.so3_exp_map(phi)
-        cases["so3", "exp"]["pytorch_kinematics[quat]"] = lambda: pk.quaternion_to_matrix(pk.axis_angle_to_quaternion(phi))
+        cases["so3", "exp"]["pytorch_kinematics[quat]"] = lambda: pk.quaternion_to_matrix(
+            pk.axis_angle_to_quaternion(phi)
+        )
         cases["so3", "log"]["pytorch_kinematics"] = lambda: pk.so3_log_map(R1)
         cases["so3", "log"]["pytorch_kinematics[quat]"] = lambda: pk.matrix_to_axis_angle(R1)
     if "roma" in peers:
@@ -144,8 +159,14 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=15, help="timed rounds")
     ap.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
     ap.add_argument("--no-compiled", action="store_true", help="skip the torch.compile variants")
-    ap.add_argument("--out", type=Path, default=RESULTS, help="JSON output path")
+    ap.add_argument("--out", type=Path, default=None, help="JSON output path")
+    ap.add_argument("--tuned-malloc", action="store_true", help="re-run with glibc keeping large blocks")
     args = ap.parse_args()
+    if args.tuned_malloc and any(os.environ.get(k) != v for k, v in MALLOC_ENV.items()):
+        # glibc reads these at process start: re-execute with them set
+        os.execve(sys.executable, [sys.executable, *sys.argv], {**os.environ, **MALLOC_ENV})
+    if args.out is None:
+        args.out = TUNED if args.tuned_malloc else RESULTS
 
     torch.set_num_threads(args.threads)
     peers = _peers_available()
@@ -155,29 +176,45 @@ def main() -> int:
     rows = []
     for (group, op, impl), ts in times.items():
         med = statistics.median(ts)
-        rows.append({
-            "group": group, "op": op, "impl": impl, "median_ms": med * 1e3,
-            "melem_per_s": args.n / med / 1e6, "first_two_calls_s": warmup[group, op, impl],
-        })
+        rows.append(
+            {
+                "group": group,
+                "op": op,
+                "impl": impl,
+                "median_ms": med * 1e3,
+                "melem_per_s": args.n / med / 1e6,
+                "first_two_calls_s": warmup[group, op, impl],
+            }
+        )
     summary = []
-    print(f"\nN = {args.n:,} float32, {args.threads} threads, median of {args.repeats} interleaved rounds "
-          f"(OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')})\n")
+    print(
+        f"\nN = {args.n:,} float32, {args.threads} threads, median of {args.repeats} interleaved rounds "
+        f"(OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}, "
+        f"malloc {'tuned' if args.tuned_malloc else 'glibc defaults'})\n"
+    )
     header = f"{'group':6} {'op':8} {'implementation':26} {'Melem/s':>9} {'ms':>8}"
     print(header)
     print("-" * len(header))
-    for (group, op) in cases:
-        sub = sorted((r for r in rows if r["group"] == group and r["op"] == op), key=lambda r: -r["melem_per_s"])
+    for group, op in cases:
+        sub = sorted(
+            (r for r in rows if r["group"] == group and r["op"] == op), key=lambda r: -r["melem_per_s"]
+        )
         for r in sub:
             print(f"{group:6} {op:8} {r['impl']:26} {r['melem_per_s']:9.2f} {r['median_ms']:8.2f}")
         peer_rows = [r for r in sub if not r["impl"].startswith("posediff")]
         best_peer = max(peer_rows, key=lambda r: r["melem_per_s"]) if peer_rows else None
         for mine in (r for r in sub if r["impl"].startswith("posediff")):
             ratio = mine["melem_per_s"] / best_peer["melem_per_s"] if best_peer else None
-            summary.append({
-                "group": group, "op": op, "impl": mine["impl"],
-                "fastest_peer": best_peer["impl"] if best_peer else None, "ratio": ratio,
-                "meets_goal": (ratio >= GOAL) if ratio is not None else None,
-            })
+            summary.append(
+                {
+                    "group": group,
+                    "op": op,
+                    "impl": mine["impl"],
+                    "fastest_peer": best_peer["impl"] if best_peer else None,
+                    "ratio": ratio,
+                    "meets_goal": (ratio >= GOAL) if ratio is not None else None,
+                }
+            )
         print()
     print(f"{'group':6} {'op':8} {'posediff variant':20} {'fastest peer':26} {'ratio':>6}  goal ≥ {GOAL}×")
     for s in summary:
@@ -187,11 +224,21 @@ def main() -> int:
 
     meta = {
         "command": "OMP_WAIT_POLICY=PASSIVE python " + " ".join(["benchmarks/lie_ops.py", *sys.argv[1:]]),
+        "note": "the default run's JSON keeps the peers' native element types; see the module docstring",
         "date": dt.datetime.now().isoformat(timespec="seconds"),
-        "n": args.n, "dtype": "float32", "threads": args.threads, "repeats": args.repeats,
+        "n": args.n,
+        "dtype": "float32",
+        "threads": args.threads,
+        "repeats": args.repeats,
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
-        "torch": torch.__version__, "python": platform.python_version(),
-        "machine": platform.machine(), "cpu": _cpu_model(), "cpu_count": os.cpu_count(),
+        "malloc": "tuned (" + ", ".join(f"{k}={v}" for k, v in MALLOC_ENV.items()) + ")"
+        if args.tuned_malloc
+        else "glibc defaults",
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "cpu": _cpu_model(),
+        "cpu_count": os.cpu_count(),
         "peers": {k: getattr(v, "__version__", "?") for k, v in peers.items()},
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -9,7 +9,6 @@ import pytest
 
 from posediff import cli
 
-
 # the console script installed next to this interpreter (the venv need not be activated)
 SCRIPT = shutil.which("posediff", path=str(Path(sys.executable).parent)) or "posediff"
 

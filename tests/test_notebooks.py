@@ -14,7 +14,9 @@ NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("[0-
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
 def test_notebook_runs(path: Path, tmp_path: Path) -> None:
     env = dict(os.environ, POSEDIFF_FAST="1", MPLBACKEND="Agg", POSEDIFF_NOTEBOOK_OUT=str(tmp_path))
-    res = subprocess.run([sys.executable, str(path)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    res = subprocess.run(
+        [sys.executable, str(path)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120
+    )
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
     assert any(tmp_path.iterdir()), "the notebook wrote no figure"
 

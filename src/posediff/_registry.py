@@ -13,8 +13,9 @@ parametrizing contract tests and for error messages; objects are built from conf
 """
 
 import re
+from collections.abc import Mapping
 from types import MappingProxyType
-from typing import Any, ClassVar, Mapping
+from typing import Any, ClassVar
 
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 

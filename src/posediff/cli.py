@@ -82,7 +82,9 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
     task: Callable[[DictConfig], int] = {"check": tasks.check_group}[name]
     conf = config_dir()
     if not (conf / f"{cmd.config}.yaml").exists():
-        return _fail(f"no config {cmd.config}.yaml in {conf} (set POSEDIFF_CONFIG_DIR to a posediff conf/ folder)")
+        return _fail(
+            f"no config {cmd.config}.yaml in {conf} (set POSEDIFF_CONFIG_DIR to a posediff conf/ folder)"
+        )
     problem = _unknown_config_choice(args, conf)
     if problem:
         return _fail(problem)

@@ -23,7 +23,9 @@ def list_groups() -> int:
     for name, cls in sorted(LieGroup.registry.items()):
         order = _tangent_order(cls)
         n = cls.matrix_dim
-        table.add_row(name, f"{cls.__module__}.{cls.__qualname__}", f"(*b, {n}, {n})", f"(*b, {cls.dim})", order)
+        table.add_row(
+            name, f"{cls.__module__}.{cls.__qualname__}", f"(*b, {n}, {n})", f"(*b, {cls.dim})", order
+        )
     Console().print(table)
     return 0
 
@@ -49,7 +51,10 @@ def check_group(cfg: DictConfig) -> int:
     names = list(cfg.checks) if cfg.checks is not None else list(LIE_GROUP_CHECKS)
     unknown = [n for n in names if n not in LIE_GROUP_CHECKS]
     if unknown:
-        print(f"posediff check: unknown check(s) {unknown}; available: {', '.join(LIE_GROUP_CHECKS)}", file=sys.stderr)
+        print(
+            f"posediff check: unknown check(s) {unknown}; available: {', '.join(LIE_GROUP_CHECKS)}",
+            file=sys.stderr,
+        )
         return 2
     device = torch.device(cfg.device)
     table = Table(title=f"contract of {group!r} on {device}")

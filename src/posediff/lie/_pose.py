@@ -44,7 +44,10 @@ def _project_rotation2(m: Tensor) -> Tensor:
 
 
 def uniform_pose(
-    shape: tuple[int, ...], generator: torch.Generator | None, device: torch.device, dtype: torch.dtype,
+    shape: tuple[int, ...],
+    generator: torch.Generator | None,
+    device: torch.device,
+    dtype: torch.dtype,
     bound: float,
 ) -> Tensor:
     """Haar rotation and translation uniform in ``[-bound, bound]³``."""

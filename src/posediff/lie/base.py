@@ -179,7 +179,9 @@ class LieGroup(Registered, family=True):
         err = self._element_error(g)
         worst = float(err.max()) if err.numel() else 0.0
         if not worst <= atol:  # also catches NaN
-            raise ValueError(f"{self.name}.check: not a valid element (max constraint error {worst:.3g} > {atol:g})")
+            raise ValueError(
+                f"{self.name}.check: not a valid element (max constraint error {worst:.3g} > {atol:g})"
+            )
 
     def matrix_rep(self, g: Tensor) -> Tensor:
         """A faithful matrix representation: ``compose`` is its matmul, ``exp`` its ``matrix_exp``.
@@ -262,8 +264,12 @@ class LieGroup(Registered, family=True):
 
     @classmethod
     def _sample_uniform(
-        cls, shape: tuple[int, ...], generator: torch.Generator | None, device: torch.device,
-        dtype: torch.dtype, bound: float,
+        cls,
+        shape: tuple[int, ...],
+        generator: torch.Generator | None,
+        device: torch.device,
+        dtype: torch.dtype,
+        bound: float,
     ) -> Tensor:
         raise NotImplementedError
 
@@ -276,7 +282,9 @@ class LieGroup(Registered, family=True):
 
     def _tangent(self, xi: Tensor, op: str) -> Tensor:
         if not isinstance(xi, Tensor) or xi.ndim < 1 or xi.shape[-1] != self.dim:
-            raise ValueError(f"{self.name}.{op}: expected a tangent of shape (*batch, {self.dim}), got {_shape(xi)}")
+            raise ValueError(
+                f"{self.name}.{op}: expected a tangent of shape (*batch, {self.dim}), got {_shape(xi)}"
+            )
         if not xi.is_floating_point():
             raise TypeError(f"{self.name}.{op}: expected a floating-point tensor, got {xi.dtype}")
         return xi
@@ -284,7 +292,9 @@ class LieGroup(Registered, family=True):
     def _element(self, g: Tensor, op: str) -> Tensor:
         n = self.matrix_dim
         if not isinstance(g, Tensor) or g.ndim < 2 or g.shape[-2:] != (n, n):
-            raise ValueError(f"{self.name}.{op}: expected an element of shape (*batch, {n}, {n}), got {_shape(g)}")
+            raise ValueError(
+                f"{self.name}.{op}: expected an element of shape (*batch, {n}, {n}), got {_shape(g)}"
+            )
         if not g.is_floating_point():
             raise TypeError(f"{self.name}.{op}: expected a floating-point tensor, got {g.dtype}")
         return g

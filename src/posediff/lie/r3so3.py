@@ -24,7 +24,15 @@ from ._pose import (
     uniform_pose,
 )
 from .base import LieGroup
-from .so3 import exp_so3_entries, left_jacobian_inv_so3, left_jacobian_so3, log_so3, log_so3_entries, matmul3, skew
+from .so3 import (
+    exp_so3_entries,
+    left_jacobian_inv_so3,
+    left_jacobian_so3,
+    log_so3,
+    log_so3_entries,
+    matmul3,
+    skew,
+)
 
 
 class R3SO3(LieGroup, name="r3so3"):
@@ -125,4 +133,3 @@ def _blockdiag(a: Tensor, b: Tensor) -> Tensor:
 def _blockdiag_eye(M: Tensor) -> Tensor:
     """``diag(I₃, M)`` for ``M (*b, 3, 3)``."""
     return _blockdiag(torch.eye(3, dtype=M.dtype, device=M.device).expand_as(M), M)
-

@@ -58,7 +58,9 @@ def cross(a: Vec3, b: Vec3) -> Vec3:
 def matmul3(a: Mat3, b: Mat3) -> Mat3:
     """Product of two 3×3 matrices given as entry tuples (what ``torch.compile`` fuses best)."""
     return tuple(
-        a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j] for i in range(3) for j in range(3)
+        a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j]
+        for i in range(3)
+        for j in range(3)
     )
 
 
@@ -203,7 +205,9 @@ class SO3(LieGroup, name="so3"):
     @classmethod
     def _compose(cls, g: Tensor, h: Tensor) -> Tensor:
         if torch.compiler.is_compiling():  # entrywise: one fused kernel instead of a batched GEMM
-            return stack_entries(matmul3(tuple(g.flatten(-2).unbind(-1)), tuple(h.flatten(-2).unbind(-1))), 3, 3)
+            return stack_entries(
+                matmul3(tuple(g.flatten(-2).unbind(-1)), tuple(h.flatten(-2).unbind(-1))), 3, 3
+            )
         return g @ h
 
     @classmethod

@@ -38,8 +38,13 @@ def _gen(seed: int = 0) -> torch.Generator:
 
 
 def tangents_at_angles(
-    group: LieGroup, angles: Tensor | list[float] | tuple[float, ...], *, seed: int = 0,
-    dtype: torch.dtype = F64, device: torch.device | str = "cpu", trans_scale: float = 1.0,
+    group: LieGroup,
+    angles: Tensor | list[float] | tuple[float, ...],
+    *,
+    seed: int = 0,
+    dtype: torch.dtype = F64,
+    device: torch.device | str = "cpu",
+    trans_scale: float = 1.0,
 ) -> Tensor:
     """Tangent vectors ``(n, dim)`` whose rotation part has the given norms (random axes) and
     whose other components are Gaussian with std ``trans_scale``."""
@@ -118,12 +123,18 @@ def check_bad_input(group: LieGroup, device: torch.device) -> None:
     element_ops = ["log", "inverse", "adjoint", "project", "check"]
     calls: list[tuple[str, Callable[[], object], str]] = []
     calls += [(op, lambda op=op: getattr(group, op)(bad_tangent), f"(*batch, {d})") for op in tangent_ops]
-    calls += [(op, lambda op=op: getattr(group, op)(bad_element), f"(*batch, {n}, {n})") for op in element_ops]
+    calls += [
+        (op, lambda op=op: getattr(group, op)(bad_element), f"(*batch, {n}, {n})") for op in element_ops
+    ]
     good = group.identity((2,), dtype=F64, device=device)
     calls += [
         ("compose", lambda: group.compose(good, bad_element), f"(*batch, {n}, {n})"),
         ("rplus", lambda: group.rplus(good, bad_tangent), f"(*batch, {d})"),
-        ("act", lambda: group.act(good, torch.zeros(2, group.point_dim + 1, dtype=F64)), f"{group.point_dim})"),
+        (
+            "act",
+            lambda: group.act(good, torch.zeros(2, group.point_dim + 1, dtype=F64)),
+            f"{group.point_dim})",
+        ),
     ]
     for op, call, expected in calls:
         try:
@@ -143,13 +154,24 @@ def check_no_in_place(group: LieGroup, device: torch.device) -> None:
     pts = torch.randn(4, group.point_dim, dtype=F64, device=device)
     before = [t.clone() for t in (xi, g, h, pts)]
     for out in (
-        group.exp(xi), group.log(g), group.compose(g, h), group.inverse(g), group.act(g, pts),
-        group.adjoint(g), group.jac_left(xi), group.jac_right(xi), group.jac_left_inv(xi),
-        group.jac_right_inv(xi), group.rplus(g, xi), group.rminus(g, h), group.project(g),
-        group.hat(xi), group.vee(group.hat(xi)),
+        group.exp(xi),
+        group.log(g),
+        group.compose(g, h),
+        group.inverse(g),
+        group.act(g, pts),
+        group.adjoint(g),
+        group.jac_left(xi),
+        group.jac_right(xi),
+        group.jac_left_inv(xi),
+        group.jac_right_inv(xi),
+        group.rplus(g, xi),
+        group.rminus(g, h),
+        group.project(g),
+        group.hat(xi),
+        group.vee(group.hat(xi)),
     ):
         out.add_(1.0)  # a returned view of an input would show up below
-    for a, b in zip(before, (xi, g, h, pts)):
+    for a, b in zip(before, (xi, g, h, pts), strict=True):
         assert torch.equal(a, b), "an operation modified its input or returned a view of it"
 
 
@@ -191,9 +213,15 @@ def check_group_axioms(group: LieGroup, device: torch.device) -> None:
     assert_close(group.compose(e, a), a, atol=1e-14, rtol=0.0)
     assert_close(group.compose(a, group.inverse(a)), e, atol=1e-13, rtol=0.0)
     assert_close(group.compose(group.inverse(a), a), e, atol=1e-13, rtol=0.0)
-    assert_close(group.compose(group.compose(a, b), c), group.compose(a, group.compose(b, c)), atol=1e-12, rtol=0.0)
-    assert_close(group.matrix_rep(group.compose(a, b)), group.matrix_rep(a) @ group.matrix_rep(b), atol=1e-13, rtol=0.0)
-    assert_close(group.matrix_rep(group.inverse(a)), torch.linalg.inv(group.matrix_rep(a)), atol=1e-12, rtol=0.0)
+    assert_close(
+        group.compose(group.compose(a, b), c), group.compose(a, group.compose(b, c)), atol=1e-12, rtol=0.0
+    )
+    assert_close(
+        group.matrix_rep(group.compose(a, b)), group.matrix_rep(a) @ group.matrix_rep(b), atol=1e-13, rtol=0.0
+    )
+    assert_close(
+        group.matrix_rep(group.inverse(a)), torch.linalg.inv(group.matrix_rep(a)), atol=1e-12, rtol=0.0
+    )
     for x in (a, group.compose(a, b), group.inverse(c)):
         _valid(group, x, "closure")
     # act applies the element as a (homogeneous) matrix to points: R p (+ t)
@@ -226,7 +254,9 @@ def check_adjoint(group: LieGroup, device: torch.device) -> None:
     xi = tangents_at_angles(group, generic_angles(16, seed=31), device=device)
     ad_xi = (group.adjoint(g) @ xi.unsqueeze(-1)).squeeze(-1)
     M = group.matrix_rep(g)
-    assert_close(group.algebra_rep(ad_xi), M @ group.algebra_rep(xi) @ torch.linalg.inv(M), atol=1e-12, rtol=0.0)
+    assert_close(
+        group.algebra_rep(ad_xi), M @ group.algebra_rep(xi) @ torch.linalg.inv(M), atol=1e-12, rtol=0.0
+    )
     conj = group.compose(group.compose(g, group.exp(xi)), group.inverse(g))
     assert_close(group.exp(ad_xi), conj, atol=1e-12, rtol=0.0)
 
@@ -243,6 +273,7 @@ def oracle_jacobians(group: LieGroup, xi: Tensor) -> tuple[Tensor, Tensor]:
     """(J_r, J_l) at each row of ``xi`` from autograd through ``matrix_exp`` (float64)."""
     jr, jl = [], []
     for x in xi:
+
         def f(v: Tensor) -> Tensor:
             return torch.linalg.matrix_exp(group.algebra_rep(v))
 
@@ -281,7 +312,9 @@ def check_jacobians_finite_differences(group: LieGroup, device: torch.device) ->
 
 def check_jacobian_identities(group: LieGroup, device: torch.device) -> None:
     """Inverses are inverses, ``J_l(z) z = z = J_r(z) z``, ``J_l(z) = J_r(−z)``, ``J_l = Ad(Exp z) J_r``."""
-    xi = tangents_at_angles(group, list(SMALL_ANGLES) + generic_angles(12, seed=42) + [math.pi], device=device)
+    xi = tangents_at_angles(
+        group, list(SMALL_ANGLES) + generic_angles(12, seed=42) + [math.pi], device=device
+    )
     eye = torch.eye(group.dim, dtype=F64, device=device).expand(xi.shape[0], -1, -1)
     jl, jr = group.jac_left(xi), group.jac_right(xi)
     assert_close(jl @ group.jac_left_inv(xi), eye, atol=1e-11, rtol=0.0)
@@ -426,5 +459,7 @@ def lie_group_contract(
         except AssertionError as e:
             failures.append(f"{name}: {str(e).strip().splitlines()[0] if str(e).strip() else 'failed'}")
     if failures:
-        raise AssertionError(f"{group!r} fails {len(failures)} contract check(s):\n  " + "\n  ".join(failures))
+        raise AssertionError(
+            f"{group!r} fails {len(failures)} contract check(s):\n  " + "\n  ".join(failures)
+        )
     return names
