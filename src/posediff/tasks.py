@@ -65,10 +65,11 @@ def check_group(cfg: DictConfig) -> int:
         try:
             LIE_GROUP_CHECKS[name](group, device)
             table.add_row(name, "[green]ok[/green]")
-        except AssertionError as e:
+        except Exception as e:  # noqa: BLE001 - every failing check is reported, none aborts the run
             failed += 1
             first = str(e).strip().splitlines()[0] if str(e).strip() else "failed"
-            table.add_row(name, f"[red]FAIL[/red] {first}")
+            kind = "" if isinstance(e, AssertionError) else f"{type(e).__name__}: "
+            table.add_row(name, f"[red]FAIL[/red] {kind}{first}")
     Console().print(table)
     print(f"{group.name}: {len(names) - failed}/{len(names)} checks passed")
     return 1 if failed else 0

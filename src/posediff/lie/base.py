@@ -44,7 +44,8 @@ class LieGroup(Registered, family=True):
 
     Args:
         compiled: run the kernels through ``torch.compile`` (fused, much faster on large batches;
-            the first call of each operation compiles for a few seconds). Off by default.
+            the first call of each operation compiles for a few seconds). Applies when no input
+            requires grad; under autograd the eager kernels run. Off by default.
     """
 
     family_label: ClassVar[str] = "Lie group"
@@ -276,7 +277,9 @@ class LieGroup(Registered, family=True):
     # ------------------------------------------------------------------ plumbing
     def _run(self, op: str, *args: Tensor) -> Tensor:
         fn: Callable[..., Tensor] = getattr(type(self), "_" + op)
-        if self.compiled:
+        # The fused path is for inference-sized work; under autograd the eager kernels run (they
+        # are differentiable everywhere, and compiled backward graphs cannot be retained).
+        if self.compiled and not (torch.is_grad_enabled() and any(a.requires_grad for a in args)):
             fn = _compiled(type(self), op)
         return fn(*args)
 
@@ -305,7 +308,7 @@ def _compiled(cls: type[LieGroup], op: str) -> Callable[..., Tensor]:
     """One ``torch.compile``d kernel per (group class, operation), shared by all instances.
 
     Inductor's CPU tiling heuristics leave kernels that read ``(*b, 3, 3)`` entries with stride 9
-    unvectorised (measured: SO3 log 30 ms → 8 ms at N = 10⁶ with them off), hence the option.
+    unvectorised (measured: SO3 log 30 ms → 4–8 ms at N = 10⁶ with them off), hence the option.
     """
     options = {"cpp.enable_tiling_heuristics": False}
     return torch.compile(getattr(cls, "_" + op), dynamic=None, fullgraph=True, options=options)  # type: ignore[no-any-return]
