@@ -92,3 +92,10 @@ def pose_entries(g: Tensor) -> tuple[Mat3, Vec3]:
     """The 9 rotation and 3 translation entries of a ``(*b, 4, 4)`` pose."""
     e = g.flatten(-2).unbind(-1)
     return (e[0], e[1], e[2], e[4], e[5], e[6], e[8], e[9], e[10]), (e[3], e[7], e[11])
+
+
+def pose_inverse(g: Tensor) -> Tensor:
+    """``[[R, t], [0, 1]]⁻¹ = [[Rᵀ, −Rᵀt], [0, 1]]`` (SE(2) and SE(3))."""
+    R, t = split_pose(g)
+    Rt = R.mT
+    return make_pose(Rt, -(Rt @ t.unsqueeze(-1)).squeeze(-1))

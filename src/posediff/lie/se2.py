@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from ._numerics import Angle
-from ._pose import make_pose, pose_act, pose_error, project_pose, split_pose
+from ._pose import make_pose, pose_act, pose_error, pose_inverse, project_pose, split_pose
 from .base import LieGroup
 
 
@@ -55,9 +55,7 @@ class SE2(LieGroup, name="se2"):
 
     @classmethod
     def _inverse(cls, g: Tensor) -> Tensor:
-        R, t = split_pose(g)
-        Rt = R.mT
-        return make_pose(Rt, -(Rt @ t.unsqueeze(-1)).squeeze(-1))
+        return pose_inverse(g)
 
     @classmethod
     def _act(cls, g: Tensor, p: Tensor) -> Tensor:

@@ -20,12 +20,12 @@ from torch import Tensor
 from ._numerics import Angle
 from ._pose import (
     block_matrix,
-    make_pose,
     pose_act,
     pose_entries,
     pose_error,
     pose_from_entries,
     pose_hat,
+    pose_inverse,
     pose_vee,
     project_pose,
     split_pose,
@@ -92,9 +92,7 @@ class SE3(LieGroup, name="se3"):
 
     @classmethod
     def _inverse(cls, g: Tensor) -> Tensor:
-        R, t = split_pose(g)
-        Rt = R.mT
-        return make_pose(Rt, -(Rt @ t.unsqueeze(-1)).squeeze(-1))
+        return pose_inverse(g)
 
     @classmethod
     def _act(cls, g: Tensor, p: Tensor) -> Tensor:
