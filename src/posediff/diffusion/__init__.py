@@ -1,0 +1,47 @@
+"""Score-based diffusion on Lie groups: kernels, score targets, schedules, samplers, modes.
+
+The pieces (paper §4; equation numbers follow the tex, see ``docs/conventions.md``):
+
+* ``NoiseKernel`` registry — ``ConcentratedGaussian`` (Eq. 3) and ``IGSO3`` (Eq. 14–15);
+* ``stein_score(group, z, sigma, method)`` — ``surrogate`` (Eq. 12), ``closed_form`` (Eq. 5),
+  ``autograd`` (Eq. 18);
+* ``NoiseSchedule`` registry — ``linear`` (paper), ``power`` (authors' code), ``loglinear``;
+* ``Diffusion`` — kernel + schedule + target + output parameterisation + loss + prior;
+* ``Sampler`` registry — ``random_walk`` (Eq. 7), ``ancestral`` (authors' code), ``few_step``;
+* ``modes`` — cluster samples into weighted modes; ``log_likelihood`` — probability-flow ODE.
+"""
+
+# IGSO3 import added when igso3.py lands
+from .kernels import ConcentratedGaussian as ConcentratedGaussian
+from .kernels import NoiseKernel as NoiseKernel
+from .oracle import MixtureOracle as MixtureOracle
+from .process import Diffusion as Diffusion
+from .process import NoisyBatch as NoisyBatch
+from .samplers import AncestralSampler as AncestralSampler
+from .samplers import FewStepSampler as FewStepSampler
+from .samplers import GeodesicRandomWalk as GeodesicRandomWalk
+from .samplers import Sampler as Sampler
+from .schedules import LinearSchedule as LinearSchedule
+from .schedules import LogLinearSchedule as LogLinearSchedule
+from .schedules import NoiseSchedule as NoiseSchedule
+from .schedules import PowerSchedule as PowerSchedule
+from .score import ScoreTarget as ScoreTarget
+from .score import stein_score as stein_score
+
+__all__ = [
+    "NoiseKernel",
+    "ConcentratedGaussian",
+    "ScoreTarget",
+    "stein_score",
+    "NoiseSchedule",
+    "LinearSchedule",
+    "LogLinearSchedule",
+    "PowerSchedule",
+    "Diffusion",
+    "NoisyBatch",
+    "Sampler",
+    "GeodesicRandomWalk",
+    "AncestralSampler",
+    "FewStepSampler",
+    "MixtureOracle",
+]
