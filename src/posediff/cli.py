@@ -22,6 +22,7 @@ class Command:
 COMMANDS: dict[str, Command] = {
     "groups": Command("list the registered Lie groups and their tensor layouts", None),
     "check": Command("run the Lie group contract on a group from config: posediff check group=so3", "check"),
+    "fit": Command("train a score model and evaluate it: posediff fit +experiment=toy_so3", "fit"),
 }
 
 
@@ -61,9 +62,9 @@ def _unknown_config_choice(args: Sequence[str], conf: Path) -> str | None:
     if any(a.startswith("hydra.searchpath") for a in args):
         return None  # options may come from elsewhere; let Hydra decide
     for arg in args:
-        if arg.startswith(("-", "+", "~")) or "=" not in arg:
+        if arg.startswith(("-", "~")) or "=" not in arg:
             continue
-        key, value = arg.split("=", 1)
+        key, value = arg.lstrip("+").split("=", 1)
         folder = conf / key
         if "." in key or not folder.is_dir() or "," in value or value in ("null", ""):
             continue
@@ -78,8 +79,10 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
     from omegaconf import DictConfig
 
     from . import tasks
+    from .config import register_resolvers
 
-    task: Callable[[DictConfig], int] = {"check": tasks.check_group}[name]
+    register_resolvers()
+    task: Callable[[DictConfig], int] = {"check": tasks.check_group, "fit": tasks.fit}[name]
     conf = config_dir()
     if not (conf / f"{cmd.config}.yaml").exists():
         return _fail(

@@ -11,9 +11,11 @@ The pieces (paper §4; equation numbers follow the tex, see ``docs/conventions.m
 * ``modes`` — cluster samples into weighted modes; ``log_likelihood`` — probability-flow ODE.
 """
 
-# IGSO3 import added when igso3.py lands
+from .igso3 import IGSO3 as IGSO3
 from .kernels import ConcentratedGaussian as ConcentratedGaussian
 from .kernels import NoiseKernel as NoiseKernel
+from .modes import Modes as Modes
+from .modes import modes as modes
 from .oracle import MixtureOracle as MixtureOracle
 from .process import Diffusion as Diffusion
 from .process import NoisyBatch as NoisyBatch
@@ -31,6 +33,7 @@ from .score import stein_score as stein_score
 __all__ = [
     "NoiseKernel",
     "ConcentratedGaussian",
+    "IGSO3",
     "ScoreTarget",
     "stein_score",
     "NoiseSchedule",
@@ -44,4 +47,6 @@ __all__ = [
     "AncestralSampler",
     "FewStepSampler",
     "MixtureOracle",
+    "Modes",
+    "modes",
 ]

@@ -1,8 +1,29 @@
 """Reusable contract checks for posediff's pluggable families (importable by out-of-tree code)."""
 
+from .diffusion import KERNEL_CHECKS as KERNEL_CHECKS
+from .diffusion import SAMPLER_CHECKS as SAMPLER_CHECKS
+from .diffusion import SCHEDULE_CHECKS as SCHEDULE_CHECKS
+from .diffusion import SCORE_TARGET_CHECKS as SCORE_TARGET_CHECKS
+from .diffusion import kernel_contract as kernel_contract
+from .diffusion import sampler_contract as sampler_contract
+from .diffusion import schedule_contract as schedule_contract
+from .diffusion import score_target_contract as score_target_contract
 from .lie import LIE_GROUP_CHECKS as LIE_GROUP_CHECKS
 from .lie import lie_group_contract as lie_group_contract
 from .lie import oracle_jacobians as oracle_jacobians
 from .lie import tangents_at_angles as tangents_at_angles
 
-__all__ = ["LIE_GROUP_CHECKS", "lie_group_contract", "oracle_jacobians", "tangents_at_angles"]
+__all__ = [
+    "KERNEL_CHECKS",
+    "SAMPLER_CHECKS",
+    "SCHEDULE_CHECKS",
+    "SCORE_TARGET_CHECKS",
+    "kernel_contract",
+    "sampler_contract",
+    "schedule_contract",
+    "score_target_contract",
+    "LIE_GROUP_CHECKS",
+    "lie_group_contract",
+    "oracle_jacobians",
+    "tangents_at_angles",
+]

@@ -1,0 +1,18 @@
+"""Hydra/OmegaConf glue: the resolvers posediff's configs use, registered once per process.
+
+* ``${posediff.tangent_dim:${group._target_}}`` — the tangent dimension of a group class (3 for
+  SO3, 6 for SE3), so the denoiser's input/output sizes follow the chosen group.
+"""
+
+from hydra.utils import get_class
+from omegaconf import OmegaConf
+
+
+def _tangent_dim(target: str) -> int:
+    return int(get_class(target).dim)
+
+
+def register_resolvers() -> None:
+    """Register posediff's OmegaConf resolvers (idempotent)."""
+    if not OmegaConf.has_resolver("posediff.tangent_dim"):
+        OmegaConf.register_new_resolver("posediff.tangent_dim", _tangent_dim)

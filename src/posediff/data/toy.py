@@ -1,0 +1,165 @@
+"""The symmetric-shape toy: learn the full set of equivalent poses from a symmetry-invariant condition.
+
+No images: the condition of a sample is a vector
+
+    [one-hot shape (5)] ⊕ [canonical rotation, flattened (9)] ⊕ [translation (3), groups with one]
+
+where the canonical rotation is the equivalent pose closest to the identity
+(:func:`posediff.symmetry.canonical_rotation`) — the same for every pose that looks identical. The
+target distribution given the condition is therefore uniform over the equivalent poses
+``{(R·S, t)}``: 12 / 24 / 60 of them for tet / cube / icosa, a circle (cone) or two (cylinder) for
+the continuous shapes. On SE(3) and R³×SO(3) the network must also recover the translation.
+
+Training poses are ``R ~ Haar``, ``t ~ U[−b, b]³``; because R is Haar-uniform, R given its
+canonical representative is uniform over the equivalent set, which is exactly the target.
+"""
+
+from collections.abc import Sequence
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader, Dataset
+
+from ..lie import LieGroup, get_group
+from ..lie.so3 import uniform_rotation
+from ..symmetry import SHAPES, canonical_rotation
+
+
+class SymmetryToy(Dataset[dict[str, Tensor]]):
+    """``size`` toy samples drawn once from ``seed`` (vectorised), as a map-style dataset.
+
+    Items: ``cond (C,)`` float32, ``pose (n, n)`` the group element, ``rotation (3, 3)``,
+    ``translation (3,)`` (zeros without translation), ``shape`` (index into ``shapes``).
+    """
+
+    def __init__(
+        self,
+        group: LieGroup | str,
+        size: int,
+        *,
+        shapes: Sequence[str] = SHAPES,
+        seed: int = 0,
+        translation_bound: float = 1.0,
+        per_shape: bool = False,
+    ) -> None:
+        self.group = get_group(group) if isinstance(group, str) else group
+        unknown = [s for s in shapes if s not in SHAPES]
+        if unknown:
+            raise ValueError(f"unknown shape(s) {unknown}; available: {', '.join(SHAPES)}")
+        self.shapes = tuple(shapes)
+        self.has_translation = self.group.name in ("se3", "r3so3")
+        if self.group.name not in ("so3", "se3", "r3so3"):
+            raise ValueError(f"the toy needs a 3-D rotation group (so3, se3, r3so3), not {self.group.name!r}")
+        gen = torch.Generator().manual_seed(int(seed))
+        n = int(size)
+        if per_shape:  # `size` samples of every shape, in shape order
+            shape_idx = torch.arange(len(self.shapes)).repeat_interleave(n)
+        else:
+            shape_idx = torch.randint(0, len(self.shapes), (n,), generator=gen)
+        total = shape_idx.numel()
+        rot = uniform_rotation((total,), gen, torch.device("cpu"), torch.float64)
+        trans = (torch.rand(total, 3, generator=gen, dtype=torch.float64) * 2 - 1) * translation_bound
+        if not self.has_translation:
+            trans.zero_()
+        canon = torch.empty_like(rot)
+        for k, shape in enumerate(self.shapes):
+            sel = shape_idx == k
+            if sel.any():
+                canon[sel] = canonical_rotation(shape, rot[sel])
+        global_idx = torch.tensor([SHAPES.index(s) for s in self.shapes])[shape_idx]
+        onehot = torch.nn.functional.one_hot(global_idx, len(SHAPES)).to(torch.float64)
+        parts = [onehot, canon.reshape(total, 9)] + ([trans] if self.has_translation else [])
+        self.cond = torch.cat(parts, dim=-1).float()
+        self.rotation = rot.float()
+        self.translation = trans.float()
+        self.shape = shape_idx
+        if self.group.matrix_dim == 3:
+            self.pose = self.rotation
+        else:
+            pose = torch.eye(4).repeat(total, 1, 1)
+            pose[:, :3, :3] = self.rotation
+            pose[:, :3, 3] = self.translation
+            self.pose = pose
+
+    @property
+    def cond_dim(self) -> int:
+        return int(self.cond.shape[-1])
+
+    def __len__(self) -> int:
+        return int(self.cond.shape[0])
+
+    def __getitem__(self, i: int) -> dict[str, Tensor]:
+        return {
+            "cond": self.cond[i],
+            "pose": self.pose[i],
+            "rotation": self.rotation[i],
+            "translation": self.translation[i],
+            "shape": self.shape[i],
+        }
+
+
+class SymmetryToyDataModule(L.LightningDataModule):
+    """Train / test splits of the toy (different seeds), for ``posediff fit +experiment=toy_*``.
+
+    Args:
+        group: the pose group (so3, se3 or r3so3).
+        shapes: which shapes (default all five).
+        num_train: training samples (drawn once; an epoch is one pass).
+        num_test_per_shape: evaluation conditions per shape.
+        batch_size: conditions per training step (each gets ``num_noisy`` noisy poses in the model).
+    """
+
+    def __init__(
+        self,
+        group: LieGroup | str,
+        *,
+        shapes: Sequence[str] = SHAPES,
+        num_train: int = 100_000,
+        num_test_per_shape: int = 8,
+        batch_size: int = 32,
+        seed: int = 0,
+        translation_bound: float = 1.0,
+        num_workers: int = 0,
+    ) -> None:
+        super().__init__()
+        self.group = get_group(group) if isinstance(group, str) else group
+        self.shapes = tuple(shapes)
+        self.num_train = int(num_train)
+        self.num_test_per_shape = int(num_test_per_shape)
+        self.batch_size = int(batch_size)
+        self.seed = int(seed)
+        self.translation_bound = float(translation_bound)
+        self.num_workers = int(num_workers)
+        self.train: SymmetryToy | None = None
+        self.test: SymmetryToy | None = None
+
+    def setup(self, stage: str | None = None) -> None:
+        kw: dict[str, Any] = {"shapes": self.shapes, "translation_bound": self.translation_bound}
+        if self.train is None:
+            self.train = SymmetryToy(self.group, self.num_train, seed=self.seed, **kw)
+        if self.test is None:
+            self.test = SymmetryToy(
+                self.group, self.num_test_per_shape, seed=self.seed + 1_000_003, per_shape=True, **kw
+            )
+
+    @property
+    def cond_dim(self) -> int:
+        return len(SHAPES) + 9 + (3 if self.group.name in ("se3", "r3so3") else 0)
+
+    def train_dataloader(self) -> DataLoader:
+        assert self.train is not None
+        gen = torch.Generator().manual_seed(self.seed)
+        return DataLoader(
+            self.train,
+            batch_size=self.batch_size,
+            shuffle=True,
+            drop_last=True,
+            generator=gen,
+            num_workers=self.num_workers,
+        )
+
+    def test_dataloader(self) -> DataLoader:
+        assert self.test is not None
+        return DataLoader(self.test, batch_size=self.num_test_per_shape, shuffle=False)

@@ -1,0 +1,22 @@
+"""Neural networks for score-based pose diffusion: the image-free denoiser and its parts.
+
+* :class:`SinusoidalEmbedding`: per-scalar sinusoidal embedding of poses and noise levels.
+* :class:`ConditionedBlock` (registry family "conditioned block"): :class:`FourierBlock` ("fourier",
+  paper Eq. 13) and :class:`ScaleBiasBlock` ("scale_bias", FiLM).
+* :class:`MLPDenoiser`: the reference head, tangent vector + noise level + condition → tangent vector.
+"""
+
+from .blocks import ACTIVATIONS, ConditionedBlock, FourierBlock, LecunLinear, ScaleBiasBlock, make_activation
+from .denoiser import MLPDenoiser
+from .embedding import SinusoidalEmbedding
+
+__all__ = [
+    "ACTIVATIONS",
+    "ConditionedBlock",
+    "FourierBlock",
+    "LecunLinear",
+    "MLPDenoiser",
+    "ScaleBiasBlock",
+    "SinusoidalEmbedding",
+    "make_activation",
+]
