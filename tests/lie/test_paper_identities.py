@@ -1,8 +1,8 @@
 """Identities from the paper (Hsiao et al., CVPR 2024) and its supplement, checked numerically.
 
-* Eq. 9:  J_l(z) = J_r(z)ᵀ and J_l⁻¹(z) = J_r⁻ᵀ(z) on SO(3) and R³×SO(3).
-* Eq. 10: hence the closed-form score J_r⁻ᵀ(z) (−z/σ²) equals the surrogate −z/σ², i.e. J_r⁻ᵀ(z) z = z.
-* Eq. 13: on SE(3), J_r⁻ᵀ(z) ≠ J_l⁻¹(z) for coupled motions, and J_r⁻ᵀ(z) z ≠ z.
+* Eq. 8:  J_l(z) = J_r(z)ᵀ and J_l⁻¹(z) = J_r⁻ᵀ(z) on SO(3) and R³×SO(3).
+* Eq. 9–10: hence the closed-form score J_r⁻ᵀ(z) (−z/σ²) equals the surrogate −z/σ², i.e. J_r⁻ᵀ(z) z = z.
+* Eq. 11: on SE(3), J_r⁻ᵀ(z) ≠ J_l⁻¹(z) for coupled motions, and J_r⁻ᵀ(z) z ≠ z.
 * Supplement: Q(−ρ, −φ)ᵀ = Q(ρ, φ), and J_r⁻ᵀ(z) = [[J_l⁻¹(φ), 0], [Z, J_l⁻¹(φ)]] with
   Z = −J_l⁻¹(φ) Q(ρ, φ) J_l⁻¹(φ).
 
@@ -51,7 +51,7 @@ def _coupled(angles: list[float], seed: int) -> Tensor:
     return xi
 
 
-# ------------------------------------------------------------------------------ Eq. 9 and Eq. 10
+# ------------------------------------------------------------------------------ Eq. 8–10
 @pytest.mark.parametrize("group", [SO3(), R3SO3()], ids=lambda g: g.name)
 def test_eq9_left_jacobian_is_right_transposed(group: LieGroup) -> None:
     z = tangents_at_angles(group, TINY + _angles(32, seed=1) + NEAR_PI, seed=2)
@@ -72,7 +72,7 @@ def test_eq10_closed_form_score_is_the_surrogate(group: LieGroup) -> None:
     assert_close(_mv(group.jac_right_inv(z).mT, z), z, atol=1e-12, rtol=1e-12)
 
 
-# ------------------------------------------------------------------------------ Eq. 13 (SE3)
+# ------------------------------------------------------------------------------ Eq. 11 (SE3)
 def test_eq13_se3_coupled_motion_breaks_the_identity() -> None:
     z = _coupled(_angles(32, seed=5, low=0.3), seed=6)
     jrit, jli = SE3().jac_right_inv(z).mT, SE3().jac_left_inv(z)

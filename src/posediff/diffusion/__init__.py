@@ -14,6 +14,7 @@ The pieces (paper §4; equation numbers follow the tex, see ``docs/conventions.m
 from .igso3 import IGSO3 as IGSO3
 from .kernels import ConcentratedGaussian as ConcentratedGaussian
 from .kernels import NoiseKernel as NoiseKernel
+from .likelihood import log_likelihood as log_likelihood
 from .modes import Modes as Modes
 from .modes import modes as modes
 from .oracle import MixtureOracle as MixtureOracle
@@ -47,6 +48,7 @@ __all__ = [
     "AncestralSampler",
     "FewStepSampler",
     "MixtureOracle",
+    "log_likelihood",
     "Modes",
     "modes",
 ]

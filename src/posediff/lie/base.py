@@ -6,7 +6,7 @@ Conventions (written once here and in ``docs/conventions.md``):
   (``[[R, t], [0, 1]]``), SE2 ``(*b, 3, 3)``. No tensor subclasses, no wrappers.
 * **Tangent vectors** are ``(*b, dim)`` and ordered ``[ρ, φ]``: translation first, then rotation,
   as the paper's τ = (ρ, φ) (Sec. 3.1). ``rotation_slice`` says where the rotation part is.
-* **Right perturbation**: ``Y = X · Exp(z)`` (paper Eq. 2); ``rplus(X, z) = X · Exp(z)`` and
+* **Right perturbation**: ``Y = X · Exp(z)`` (paper Eq. 3); ``rplus(X, z) = X · Exp(z)`` and
   ``rminus(X, Y) = Log(X⁻¹ Y)``. Jacobians follow: ``Exp(z + δ) ≈ Exp(z) · Exp(J_r(z) δ)`` and
   ``Exp(z + δ) ≈ Exp(J_l(z) δ) · Exp(z)``.
 * ``log`` is principal: the rotation angle of its result lies in [0, π].
@@ -146,7 +146,7 @@ class LieGroup(Registered, family=True):
         return self._run("jac_right_inv", self._tangent(xi, "jac_right_inv"))
 
     def rplus(self, g: Tensor, xi: Tensor) -> Tensor:
-        """``g · Exp(ξ)``: the right perturbation of the paper's kernel (Eq. 2)."""
+        """``g · Exp(ξ)``: the right perturbation of the paper's kernel (Eq. 3)."""
         return self._run("rplus", self._element(g, "rplus"), self._tangent(xi, "rplus"))
 
     def rminus(self, g: Tensor, h: Tensor) -> Tensor:

@@ -4,7 +4,7 @@ Composition is ``(R₂, t₂)(R₁, t₁) = (R₂R₁, t₂ + t₁)`` (paper Sec
 diffuse independently, ``Exp(ρ, φ) = (Exp(φ), ρ)``. Because this product is *not* the 4×4 matmul,
 ``matrix_rep`` maps an element to the faithful 7×7 block-diagonal matrix
 ``diag(R, [[I, t], [0, 1]])`` for the oracle checks. Jacobians are block-diagonal,
-``J_l = diag(I, J_l(φ)) = J_rᵀ`` (paper Eq. 9), so the score is exactly −z/σ² (paper Eq. 10).
+``J_l = diag(I, J_l(φ)) = J_rᵀ`` (paper Eq. 8, 10), so the score is exactly −z/σ² (paper Eq. 9–10).
 """
 
 import torch

@@ -10,7 +10,7 @@ paper's typeset version mixes θ and θ², the form here is the one checked agai
 * J_l⁻¹(ρ, φ) = [[J_l⁻¹(φ), Z], [0, J_l⁻¹(φ)]],  Z = −J_l⁻¹(φ) Q(ρ, φ) J_l⁻¹(φ)
 * Q(ρ, φ) = ½P + C (FP + PF + FPF) + E (F²P + PF² − 3FPF) + F' (FPF² + F²PF), with P = ρ×, F = φ×
 
-Unlike SO3 and R3SO3, ``J_r⁻ᵀ(z) ≠ J_l⁻¹(z)`` on coupled motions (paper Eq. 13), which is why the
+Unlike SO3 and R3SO3, ``J_r⁻ᵀ(z) ≠ J_l⁻¹(z)`` on coupled motions (paper Eq. 11), which is why the
 paper trains SE(3) with the surrogate score −z/σ² (Eq. 12).
 """
 

@@ -4,7 +4,7 @@ Closed forms (Solà et al. 2018; paper supplement "Left and Right Jacobians on S
 θ = |φ| and K = φ× (the skew matrix):
 
 * Exp(φ) = I + A K + B K²                  (Rodrigues)
-* J_l(φ) = I + B K + C K²,   J_r(φ) = J_l(−φ) = J_l(φ)ᵀ        (paper Eq. 9)
+* J_l(φ) = I + B K + C K²,   J_r(φ) = J_l(−φ) = J_l(φ)ᵀ        (paper Eq. 8)
 * J_l⁻¹(φ) = I − ½ K + D K²,  J_r⁻¹(φ) = I + ½ K + D K²
 * Log(R): θ = atan2(|v|, (tr R − 1)/2) with v = vee(R − Rᵀ)/2 = sin θ · axis. For θ < π/2 it
   returns v θ / sin θ (a series in sin²θ near 0); for θ ≥ π/2 the axis comes from the symmetric

@@ -1,0 +1,146 @@
+"""The symmetric-shape toy, every variant of the paper's ablations, on the CPU.
+
+    python benchmarks/toy.py                 # train + evaluate every variant (~40 min on 2 cores)
+    python benchmarks/toy.py --only se3_autograd --max-steps 500   # one variant, shorter
+    python benchmarks/toy.py --collect       # rebuild the table from finished runs
+
+Each variant is one ``posediff fit +experiment=toy_*`` run (Hydra overrides below), trained for
+``trainer.max_steps`` and evaluated with the random walk, the ancestral and the few-step sampler
+at 5 / 10 / 50 / 100 steps (200 samples for each of 8 test conditions per shape). Runs go to
+``outputs/toy/<variant>/`` (metrics.json there); the collected results go to
+``benchmarks/results/toy.json`` and the markdown table to ``benchmarks/results/toy.md``.
+
+Variants (what the paper compares, Tables 5–6 and the supplement):
+
+* ``so3_surrogate`` — SO(3), concentrated Gaussian N, surrogate score, Fourier blocks (reference);
+* ``so3_scale_bias`` — the same with scale-bias (FiLM) blocks instead of Fourier blocks;
+* ``so3_igso3`` — IG_SO(3) noise with its exact (closed-form) score instead of N;
+* ``se3_surrogate`` / ``se3_closed_form`` / ``se3_autograd`` — SE(3) with the three score targets.
+"""
+
+import argparse
+import datetime as dt
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results" / "toy.json"
+TABLE = RESULTS.with_suffix(".md")
+RUNS = ROOT / "outputs" / "toy"
+
+VARIANTS: dict[str, list[str]] = {
+    "so3_surrogate": ["+experiment=toy_so3"],
+    "so3_scale_bias": ["+experiment=toy_so3", "denoiser.block=scale_bias"],
+    "so3_igso3": ["+experiment=toy_so3", "kernel=igso3", "diffusion.score=closed_form"],
+    "se3_surrogate": ["+experiment=toy_se3"],
+    "se3_closed_form": ["+experiment=toy_se3", "diffusion.score=closed_form"],
+    "se3_autograd": ["+experiment=toy_se3", "diffusion.score=autograd"],
+}
+DISCRETE = ("tet", "cube", "icosa")
+
+
+def run_variant(name: str, extra: list[str]) -> Path:
+    out = RUNS / name
+    exe = Path(sys.executable).with_name("posediff")
+    cmd = [str(exe), "fit", *VARIANTS[name], *extra, f"hydra.run.dir={out}"]
+    print("$", " ".join(cmd[1:]), flush=True)
+    log = out.with_suffix(".log")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "w") as f:
+        subprocess.run(cmd, check=True, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT)
+    return out / "metrics.json"
+
+
+def collect() -> dict[str, Any]:
+    runs: dict[str, Any] = {}
+    for name in VARIANTS:
+        path = RUNS / name / "metrics.json"
+        if path.exists():
+            runs[name] = json.loads(path.read_text())
+    return runs
+
+
+def _fmt(v: Any, digits: int = 2) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "–"
+    return f"{v:.{digits}f}"
+
+
+def table(runs: dict[str, Any]) -> str:
+    """Markdown: one row per variant × sampler × steps; spread per shape, translation, coverage."""
+    head = (
+        "| variant | sampler | steps | tet | cube | icosa | cone | cyl | mean spread ° | trans. err "
+        "| coverage tet/cube/icosa | s/input |"
+    )
+    lines = [head, "|" + "---|" * 12]
+    for name, res in runs.items():
+        before = res.get("before")
+        rows = []
+        if before:
+            rows.append(("untrained", str(before["num_steps"]), before))
+        for sampler, by_steps in res.get("after", {}).items():
+            for steps, r in by_steps.items():
+                rows.append((sampler, steps, r))
+        for sampler, steps, r in rows:
+            shapes = r["shapes"]
+            cov = "/".join(_fmt(shapes.get(s, {}).get("coverage"), 2) for s in DISCRETE)
+            lines.append(
+                f"| {name} | {sampler} | {steps} | "
+                + " | ".join(
+                    _fmt(shapes.get(s, {}).get("spread_deg")) for s in ("tet", "cube", "icosa", "cone", "cyl")
+                )
+                + f" | {_fmt(r['overall'].get('spread_deg'))} | {_fmt(r['overall'].get('translation_error'), 3)}"
+                + f" | {cov} | {_fmt(r.get('seconds_per_input'), 3)} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--only", nargs="*", choices=list(VARIANTS), help="run only these variants")
+    ap.add_argument("--max-steps", type=int, default=None, help="override trainer.max_steps")
+    ap.add_argument("--collect", action="store_true", help="only collect finished runs")
+    args = ap.parse_args()
+    extra = [f"trainer.max_steps={args.max_steps}"] if args.max_steps else []
+    if not args.collect:
+        for name in args.only or list(VARIANTS):
+            run_variant(name, extra)
+    runs = collect()
+    if not runs:
+        print("no finished runs under", RUNS, file=sys.stderr)
+        return 1
+    import torch
+
+    doc = {
+        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "command": "python benchmarks/toy.py" + (f" --max-steps {args.max_steps}" if args.max_steps else ""),
+        "machine": {"cpu": platform.processor() or platform.machine(), "threads": torch.get_num_threads()},
+        "torch": torch.__version__,
+        "variants": {k: VARIANTS[k] for k in runs},
+        "runs": runs,
+    }
+    _atomic_write(RESULTS, json.dumps(doc, indent=1) + "\n")
+    md = table(runs)
+    _atomic_write(TABLE, md)
+    print(md)
+    print(f"wrote {RESULTS.relative_to(ROOT)} and {TABLE.relative_to(ROOT)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
