@@ -48,6 +48,12 @@ bench: ## time the Lie group ops against peer libraries (writes benchmarks/resul
 bench-tuned: ## the same with glibc keeping large blocks (writes benchmarks/results/lie_ops_tuned_malloc.json)
 	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/lie_ops.py --tuned-malloc
 
+toy: ## the symmetric-shape toy, every ablation variant (~40 min; writes benchmarks/results/toy.json, toy.md)
+	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/toy.py
+
+bench-sampler: ## time per denoising step, network vs group math (writes benchmarks/results/sampler.json)
+	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/sampler.py
+
 notebooks: ## run the notebooks in fast mode
 	$(PY) -m pytest -q -m notebooks tests/test_notebooks.py
 
