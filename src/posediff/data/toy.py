@@ -12,8 +12,15 @@ the continuous shapes. On SE(3) and R³×SO(3) the network must also recover the
 
 Training poses are ``R ~ Haar``, ``t ~ U[−b, b]³``; because R is Haar-uniform, R given its
 canonical representative is uniform over the equivalent set, which is exactly the target.
+
+``num_poses = M`` restricts the orientations to M fixed canonical poses per shape (drawn from
+``pose_seed``, shared by the train and test splits): a training rotation is ``R_m · S`` with S a
+uniformly random symmetry (and ``Rz(α)``/flip for cone and cylinder), so the target is still the
+full equivalent set, but the network has M conditions per shape to learn instead of a continuum.
+The CPU toy uses it (the continuum needs far more training than minutes; see the README).
 """
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -24,7 +31,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from ..lie import LieGroup, get_group
 from ..lie.so3 import uniform_rotation
-from ..symmetry import SHAPES, canonical_rotation
+from ..symmetry import SHAPES, canonical_rotation, is_continuous, symmetry_group
 
 
 class SymmetryToy(Dataset[dict[str, Tensor]]):
@@ -43,6 +50,8 @@ class SymmetryToy(Dataset[dict[str, Tensor]]):
         seed: int = 0,
         translation_bound: float = 1.0,
         per_shape: bool = False,
+        num_poses: int | None = None,
+        pose_seed: int = 12345,
     ) -> None:
         self.group = get_group(group) if isinstance(group, str) else group
         unknown = [s for s in shapes if s not in SHAPES]
@@ -59,7 +68,12 @@ class SymmetryToy(Dataset[dict[str, Tensor]]):
         else:
             shape_idx = torch.randint(0, len(self.shapes), (n,), generator=gen)
         total = shape_idx.numel()
-        rot = uniform_rotation((total,), gen, torch.device("cpu"), torch.float64)
+        if num_poses:
+            rot = _rotations_from_pose_set(
+                self.shapes, shape_idx, int(num_poses), int(pose_seed), gen, per_shape
+            )
+        else:
+            rot = uniform_rotation((total,), gen, torch.device("cpu"), torch.float64)
         trans = (torch.rand(total, 3, generator=gen, dtype=torch.float64) * 2 - 1) * translation_bound
         if not self.has_translation:
             trans.zero_()
@@ -100,6 +114,44 @@ class SymmetryToy(Dataset[dict[str, Tensor]]):
         }
 
 
+def _rotations_from_pose_set(
+    shapes: Sequence[str],
+    shape_idx: Tensor,
+    num_poses: int,
+    pose_seed: int,
+    gen: torch.Generator,
+    cycle: bool,
+) -> Tensor:
+    """``R_m · S``: one of ``num_poses`` fixed poses of the sample's shape times a random symmetry."""
+    base = uniform_rotation(
+        (len(shapes), num_poses), torch.Generator().manual_seed(pose_seed), "cpu", torch.float64
+    )
+    total = shape_idx.numel()
+    if cycle:  # test split: go through the poses in order
+        m = torch.cat([torch.arange((shape_idx == k).sum()) % num_poses for k in range(len(shapes))])
+    else:
+        m = torch.randint(0, num_poses, (total,), generator=gen)
+    out = torch.empty(total, 3, 3, dtype=torch.float64)
+    for k, shape in enumerate(shapes):
+        sel = shape_idx == k
+        n = int(sel.sum())
+        if n == 0:
+            continue
+        if is_continuous(shape):
+            alpha = torch.rand(n, generator=gen, dtype=torch.float64) * 2 * math.pi
+            c, s_ = alpha.cos(), alpha.sin()
+            sym = torch.zeros(n, 3, 3, dtype=torch.float64)
+            sym[:, 0, 0], sym[:, 0, 1], sym[:, 1, 0], sym[:, 1, 1], sym[:, 2, 2] = c, -s_, s_, c, 1.0
+            if shape == "cyl":
+                flip = torch.rand(n, generator=gen) < 0.5
+                sym[flip] = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64)) @ sym[flip]
+        else:
+            group = symmetry_group(shape)
+            sym = group[torch.randint(0, len(group), (n,), generator=gen)]
+        out[sel] = base[k, m[sel]] @ sym
+    return out
+
+
 class SymmetryToyDataModule(L.LightningDataModule):
     """Train / test splits of the toy (different seeds), for ``posediff fit +experiment=toy_*``.
 
@@ -109,6 +161,7 @@ class SymmetryToyDataModule(L.LightningDataModule):
         num_train: training samples (drawn once; an epoch is one pass).
         num_test_per_shape: evaluation conditions per shape.
         batch_size: conditions per training step (each gets ``num_noisy`` noisy poses in the model).
+        num_poses: fixed canonical poses per shape (None: every orientation; see ``SymmetryToy``).
     """
 
     def __init__(
@@ -122,6 +175,7 @@ class SymmetryToyDataModule(L.LightningDataModule):
         seed: int = 0,
         translation_bound: float = 1.0,
         num_workers: int = 0,
+        num_poses: int | None = None,
     ) -> None:
         super().__init__()
         self.group = get_group(group) if isinstance(group, str) else group
@@ -132,11 +186,16 @@ class SymmetryToyDataModule(L.LightningDataModule):
         self.seed = int(seed)
         self.translation_bound = float(translation_bound)
         self.num_workers = int(num_workers)
+        self.num_poses = num_poses
         self.train: SymmetryToy | None = None
         self.test: SymmetryToy | None = None
 
     def setup(self, stage: str | None = None) -> None:
-        kw: dict[str, Any] = {"shapes": self.shapes, "translation_bound": self.translation_bound}
+        kw: dict[str, Any] = {
+            "shapes": self.shapes,
+            "translation_bound": self.translation_bound,
+            "num_poses": self.num_poses,
+        }
         if self.train is None:
             self.train = SymmetryToy(self.group, self.num_train, seed=self.seed, **kw)
         if self.test is None:

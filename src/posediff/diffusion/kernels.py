@@ -215,41 +215,50 @@ class ConcentratedGaussian(NoiseKernel, name="gaussian"):
         """The exact Haar log density of the sampling law ``X·Exp(z)``, ``z ~ N(0, Σ)``.
 
         ``Σ_k N(z_k) / |det J_r(z_k)|`` over the preimages ``z_k`` of ``X⁻¹X̃`` whose rotation part
-        differs from the principal one by ``2πn`` along its axis, ``|n| ≤ wraps`` (for groups with
-        a rotation; a translation-only chart has one preimage). Same reference measure as
-        ``log_prob``. Used to check the kernel, not in training.
+        differs from the principal one by ``2πn`` along its axis, ``|n| ≤ wraps``. For semidirect
+        groups (SE3, SE2) the translation part of each preimage is re-solved so that ``Exp(z_k)``
+        is the same element (``Exp``'s translation is linear in ρ for a fixed rotation part). Same
+        reference measure as ``log_prob``. Used to check the kernel, not in training.
         """
-        z0 = self.group.rminus(x, x_noisy)
-        sl = self.group.rotation_slice
+        g = self.group
+        z0 = g.rminus(x, x_noisy)
+        element = g.exp(z0)
+        sl = g.rotation_slice
+        trans = [i for i in range(g.dim) if i not in range(g.dim)[sl]]
+        k = g.matrix_dim - 1
         phi = z0[..., sl]
         theta = phi.norm(dim=-1, keepdim=True)
         axis = torch.where(theta > 1e-12, phi / theta.clamp_min(1e-300), torch.zeros_like(phi))
+        if phi.shape[-1] == 1:  # planar rotation: the "axis" is the sign
+            axis = torch.where(phi >= 0, torch.ones_like(phi), -torch.ones_like(phi))
         terms = []
         for n in range(-wraps, wraps + 1):
-            if n != 0 and not bool((theta > 0).any()):
-                continue
-            phi_n = phi + 2 * math.pi * n * axis
+            zn = z0.clone()
             if n != 0:
-                # Exp(φ + 2πn·axis) = Exp(φ) only for the rotation; for SE3 the twist ρ of the same
-                # element changes with the chart, so recompute it from the element.
-                zn = z0.clone()
-                zn[..., sl] = phi_n
-                if self.group.name == "se3":
-                    t = self.group.exp(z0)[..., :3, 3]
-                    jl = _left_jacobian_so3(phi_n)
-                    zn[..., :3] = torch.linalg.solve(jl, t.unsqueeze(-1)).squeeze(-1)
-            else:
-                zn = z0
-            lq = self.log_prob_tangent(zn, sigma)
-            det = torch.linalg.det(self.group.jac_right(zn)).abs()
-            term = lq - torch.log(det)
+                zn[..., sl] = phi + 2 * math.pi * n * axis
+                if trans:
+                    zn = self._resolve_translation(zn, element[..., :k, k], trans)
+            term = self.log_prob_tangent(zn, sigma) - torch.log(torch.linalg.det(g.jac_right(zn)).abs())
             if n != 0:
                 term = torch.where(theta.squeeze(-1) > 0, term, torch.full_like(term, -math.inf))
             terms.append(term)
         return torch.logsumexp(torch.stack(terms), dim=0)
 
-
-def _left_jacobian_so3(phi: Tensor) -> Tensor:
-    from ..lie import SO3
-
-    return SO3().jac_left(phi)
+    def _resolve_translation(self, z: Tensor, t: Tensor, trans: list[int]) -> Tensor:
+        """Set the translation components of ``z`` so that ``Exp(z)`` has translation ``t``."""
+        g = self.group
+        k = g.matrix_dim - 1
+        cols = []
+        for i in trans:
+            zi = z.clone()
+            zi[..., trans] = 0.0
+            zi[..., i] = 1.0
+            cols.append(g.exp(zi)[..., :k, k])
+        zero = z.clone()
+        zero[..., trans] = 0.0
+        offset = g.exp(zero)[..., :k, k]
+        A = torch.stack([c - offset for c in cols], dim=-1)  # translation is affine in ρ
+        rho = torch.linalg.solve(A, (t - offset).unsqueeze(-1)).squeeze(-1)
+        out = z.clone()
+        out[..., trans] = rho
+        return out

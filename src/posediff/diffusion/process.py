@@ -191,9 +191,10 @@ class Diffusion:
             rot = g.rotation_slice
             has_translation = (rot.stop - rot.start) < g.dim
             haar = g.sample_uniform(shape, generator=generator, device=device, dtype=dtype)
-            if has_translation and g.point_dim == 3:
+            if has_translation:
+                k = g.matrix_dim - 1
                 x = x.clone()
-                x[..., :3, :3] = haar[..., :3, :3]
+                x[..., :k, :k] = haar[..., :k, :k]
             else:
                 x = haar
         return x

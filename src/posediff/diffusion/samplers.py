@@ -185,7 +185,8 @@ class GeodesicRandomWalk(Sampler, name="random_walk"):
 
     def network_calls(self, num_steps: int) -> int:
         per = self.langevin_steps if self.step_size == "langevin" else 1
-        return num_steps * per
+        last = 1 if self.final_denoise else per
+        return (num_steps - 1) * per + last
 
     def step(self, denoise_fn, x, sigma_t, sigma_p, cond, generator):  # noqa: ANN001, ANN201
         g = self.group
@@ -271,6 +272,8 @@ class FewStepSampler(Sampler, name="few_step"):
             raise ValueError(f"few_step: order must be 1 or 2, got {order}")
         if not 0.0 <= renoise <= 1.0:
             raise ValueError(f"few_step: renoise must be in [0, 1], got {renoise}")
+        if order == 2 and renoise > 0.0:
+            raise ValueError("few_step: order=2 (the Heun correction of the ODE) needs renoise=0")
         self.order = int(order)
         self.renoise = float(renoise)
 
