@@ -56,7 +56,7 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-from .kernels import NoiseKernel
+from .kernels import NoiseKernel, broadcast_sigma
 
 __all__ = [
     "IGSO3",
@@ -470,11 +470,7 @@ def sample_igso3(
     of a Haar-uniform rotation (the IG law is Haar to < 1e-6 there). The axis is uniform on S²
     (a normalised Gaussian). All randomness comes from ``generator``. Angles lie in [0, π].
     """
-    sig = torch.as_tensor(sigma, dtype=dtype, device=device)
-    if not sig.is_floating_point():
-        sig = sig.to(torch.get_default_dtype())
-    shape = tuple(sig.shape) if batch_shape is None else tuple(batch_shape)
-    return _sample(torch.broadcast_to(sig, shape), generator)[0]
+    return _sample(broadcast_sigma(sigma, batch_shape, dtype, device), generator)[0]
 
 
 def sample_igso3_angle(
@@ -486,11 +482,7 @@ def sample_igso3_angle(
     device: Any = None,
 ) -> Tensor:
     """The angles ``|φ|`` of :func:`sample_igso3` (same draws for the same generator state)."""
-    sig = torch.as_tensor(sigma, dtype=dtype, device=device)
-    if not sig.is_floating_point():
-        sig = sig.to(torch.get_default_dtype())
-    shape = tuple(sig.shape) if batch_shape is None else tuple(batch_shape)
-    return _sample(torch.broadcast_to(sig, shape), generator)[1]
+    return _sample(broadcast_sigma(sigma, batch_shape, dtype, device), generator)[1]
 
 
 # ------------------------------------------------------------------------------------------ kernel

@@ -32,6 +32,17 @@ from .._registry import Registered
 from ..lie import LieGroup, get_group
 
 
+def broadcast_sigma(
+    sigma: Tensor | float, batch_shape: tuple[int, ...] | None, dtype: torch.dtype | None, device: Any
+) -> Tensor:
+    """σ as a floating tensor broadcast to ``batch_shape`` (default: σ's own shape)."""
+    sig = torch.as_tensor(sigma, dtype=dtype, device=device)
+    if not sig.is_floating_point():
+        sig = sig.to(torch.get_default_dtype())
+    shape = tuple(sig.shape) if batch_shape is None else tuple(batch_shape)
+    return torch.broadcast_to(sig, shape)
+
+
 class NoiseKernel(Registered, family=True):
     """A left-invariant perturbation kernel ``p_σ(X̃ | X) = q_σ(Log(X⁻¹ X̃))`` on a Lie group.
 
@@ -110,12 +121,7 @@ class NoiseKernel(Registered, family=True):
 
         ``batch_shape`` defaults to ``sigma``'s shape.
         """
-        sig = torch.as_tensor(sigma, dtype=dtype, device=device)
-        if not sig.is_floating_point():
-            sig = sig.to(torch.get_default_dtype())
-        shape = tuple(sig.shape) if batch_shape is None else tuple(batch_shape)
-        sig = torch.broadcast_to(sig, shape)
-        z = self._sample_tangent(sig, generator)
+        z = self._sample_tangent(broadcast_sigma(sigma, batch_shape, dtype, device), generator)
         if self.wrap:
             z = self._wrap(z)
         return z
