@@ -14,15 +14,6 @@ F64 = torch.float64
 GROUPS = ["so3", "r3so3", "se3", "se2"]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small and mid-size batches: one intra-op thread is many times faster on a busy 2-core box."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def random_tangent(group_name: str, n: int, seed: int, max_angle: float = 3.0) -> torch.Tensor:
     g = get_group(group_name)
     gen = torch.Generator().manual_seed(seed)

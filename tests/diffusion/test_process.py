@@ -15,15 +15,6 @@ F64 = torch.float64
 GROUPS = ["so3", "r3so3", "se3", "se2"]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small and mid-size batches: one intra-op thread is many times faster on a busy 2-core box."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def make(group_name: str = "se3", *, scales: tuple[float, float] = (1.0, 1.0), **kw) -> Diffusion:
     kernel = ConcentratedGaussian(group_name, translation_scale=scales[0], rotation_scale=scales[1])
     return Diffusion(kernel, kw.pop("schedule", PowerSchedule()), **kw)

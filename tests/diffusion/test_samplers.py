@@ -43,15 +43,6 @@ CONFIGS = {
 FAST = [k for k in CONFIGS if not k.startswith("rw_")]  # ancestral and few_step: exact at 10 steps too
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Hundreds of small-batch steps: one intra-op thread is several times faster on a busy 2-core box."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def diffusion(
     group_name: str, score: str = "surrogate", output: str = "score", prior: str = "haar"
 ) -> Diffusion:

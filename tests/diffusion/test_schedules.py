@@ -26,15 +26,6 @@ AUTHORS_TABLE = {
 SCHEDULES = [PowerSchedule, LinearSchedule, LogLinearSchedule]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small and mid-size batches: one intra-op thread is many times faster on a busy 2-core box."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def _round_sig(x: float, digits: int = 4) -> float:
     return float(f"{x:.{digits - 1}e}")
 
