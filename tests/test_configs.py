@@ -69,3 +69,23 @@ def test_paper_defaults() -> None:
     assert (d.score, d.output, d.loss, d.prior) == ("surrogate", "score", "tangent_l2", "kernel")
     assert OmegaConf.select(cfg, "schedule._target_").endswith("LinearSchedule")
     assert OmegaConf.select(cfg, "sampler._target_").endswith("GeodesicRandomWalk")
+
+
+@pytest.mark.parametrize(("experiment", "width"), [("toy_so3", 9), ("toy_se3", 12)])
+def test_matrix_pose_input(experiment: str, width: int) -> None:
+    """``module.pose_input=matrix`` feeds the top 3 rows of X̃ and sizes the denoiser to match."""
+    cfg = _compose([f"+experiment={experiment}", "module.pose_input=matrix", *NO_HYDRA])
+    module = instantiate(cfg.module)
+    assert cfg.denoiser.in_dim == width and cfg.denoiser.out_dim == module.group.dim
+    x = module.group.sample_uniform((2, 3), generator=torch.Generator().manual_seed(0))
+    feats = module.pose_features(x)
+    assert feats.shape == (2, 3, width)
+    torch.testing.assert_close(feats, x[..., :3, :].flatten(-2))
+    data = instantiate(cfg.data)
+    data.setup("fit")
+    batch = next(iter(data.train_dataloader()))
+    assert torch.isfinite(module.training_step({k: v[:2] for k, v in batch.items()}, 0))
+    with pytest.raises(ValueError, match="tangent, matrix"):
+        PoseDiffusionModule.pose_input_dim(module.group, "quaternion")
+    with pytest.raises(ValueError, match="tangent, matrix"):
+        PoseDiffusionModule(module.diffusion, module.denoiser, module.sampler, pose_input="quaternion")

@@ -2,6 +2,8 @@
 
 * ``${posediff.tangent_dim:${group._target_}}`` — the tangent dimension of a group class (3 for
   SO3, 6 for SE3), so the denoiser's input/output sizes follow the chosen group.
+* ``${posediff.pose_input_dim:${group._target_},${module.pose_input}}`` — the width of what the
+  denoiser sees of a noisy pose (:meth:`posediff.module.PoseDiffusionModule.pose_input_dim`).
 """
 
 from hydra.utils import get_class
@@ -12,7 +14,15 @@ def _tangent_dim(target: str) -> int:
     return int(get_class(target).dim)
 
 
+def _pose_input_dim(target: str, pose_input: str) -> int:
+    from .module import PoseDiffusionModule
+
+    return PoseDiffusionModule.pose_input_dim(get_class(target), pose_input)
+
+
 def register_resolvers() -> None:
     """Register posediff's OmegaConf resolvers (idempotent)."""
     if not OmegaConf.has_resolver("posediff.tangent_dim"):
         OmegaConf.register_new_resolver("posediff.tangent_dim", _tangent_dim)
+    if not OmegaConf.has_resolver("posediff.pose_input_dim"):
+        OmegaConf.register_new_resolver("posediff.pose_input_dim", _pose_input_dim)

@@ -7,8 +7,11 @@ input**; its feature is broadcast to the ``num_noisy`` noisy poses of that input
 256 noisy poses per step), and to the N hypotheses when sampling.
 
 Batches are dicts with ``pose (B, n, n)`` and the condition under ``cond_key`` (default ``"cond"``).
-The network sees ``Log(X̃)`` (the tangent vector of the noisy pose, paper §4.4) and the continuous
-noise-level index ``schedule.level(σ)`` (the authors feed the level index).
+The network sees ``Log(X̃)`` (the tangent vector of the noisy pose, paper §4.4; ``pose_input=
+"tangent"``) or, as an option beyond the paper, the entries of the pose matrix (``pose_input=
+"matrix"``: the 3×3 rotation, plus the translation column for 4×4 groups — smooth everywhere, no
+re-wrapping of the rotation vector at θ = π), and the continuous noise-level index
+``schedule.level(σ)`` (the authors feed the level index).
 """
 
 from collections.abc import Callable
@@ -33,7 +36,11 @@ class PoseDiffusionModule(L.LightningModule):
         lr, lr_final, decay_start: Adam at ``lr``, exponential decay to ``lr_final`` from the fraction
             ``decay_start`` of ``trainer.max_steps`` to the end (paper: 1e-4 → 1e-5 over the second half).
         weight_decay: > 0 uses AdamW (the authors' code: 1e-4).
+        pose_input: what the denoiser sees of the noisy pose: ``"tangent"`` (``Log X̃``, the paper)
+            or ``"matrix"`` (the top 3 rows of ``X̃``, flattened); see :meth:`pose_input_dim`.
     """
+
+    POSE_INPUTS = ("tangent", "matrix")
 
     def __init__(
         self,
@@ -48,8 +55,14 @@ class PoseDiffusionModule(L.LightningModule):
         lr_final: float = 1e-5,
         decay_start: float = 0.5,
         weight_decay: float = 0.0,
+        pose_input: str = "tangent",
     ) -> None:
         super().__init__()
+        if pose_input not in self.POSE_INPUTS:
+            raise ValueError(
+                f"unknown pose_input {pose_input!r}; choose one of: {', '.join(self.POSE_INPUTS)}"
+            )
+        self.pose_input = pose_input
         self.diffusion = diffusion
         self.denoiser = denoiser
         self.encoder = encoder if encoder is not None else nn.Identity()
@@ -74,11 +87,25 @@ class PoseDiffusionModule(L.LightningModule):
         """The per-input feature, computed once per input."""
         return self.encoder(cond)
 
+    @staticmethod
+    def pose_input_dim(group: Any, pose_input: str) -> int:
+        """Width of the denoiser's pose input: the tangent dimension, or 3·n for an n×n matrix."""
+        if pose_input == "tangent":
+            return int(group.dim)
+        if pose_input == "matrix":
+            return 3 * int(group.matrix_dim)
+        raise ValueError(f"unknown pose_input {pose_input!r}; choose one of: tangent, matrix")
+
+    def pose_features(self, x_noisy: Tensor) -> Tensor:
+        """What the denoiser sees of ``x_noisy (..., n, n)``: ``(..., pose_input_dim)``."""
+        if self.pose_input == "matrix":
+            return x_noisy[..., :3, :].flatten(-2)
+        return self.group.log(x_noisy)
+
     def forward(self, x_noisy: Tensor, sigma: Tensor, feature: Tensor) -> Tensor:
         """Raw network output at noisy poses ``x_noisy (B, N, n, n)`` with levels ``sigma (B, N)``."""
-        tangent = self.group.log(x_noisy)
         level = self.diffusion.schedule.level(sigma)
-        return self.denoiser(tangent, level, feature)
+        return self.denoiser(self.pose_features(x_noisy), level, feature)
 
     def denoise_fn(self) -> Callable[[Tensor, Tensor, Tensor], Tensor]:
         """The ``denoise_fn(x, sigma, feature)`` the samplers call."""

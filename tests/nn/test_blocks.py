@@ -49,6 +49,32 @@ def test_embedding_defaults_and_shapes() -> None:
         SinusoidalEmbedding(0)
 
 
+def test_embedding_min_period_sets_the_fastest_frequency() -> None:
+    emb = SinusoidalEmbedding(9, max_period=10.0, min_period=1 / 16)
+    freqs = emb.frequencies(dtype=torch.float64)
+    assert_close(freqs[[0, -1]], torch.tensor([16.0, 0.1], dtype=torch.float64))
+    ratios = freqs[1:] / freqs[:-1]  # geometric
+    assert_close(ratios, ratios[:1].expand_as(ratios))
+    x = torch.tensor([0.3], dtype=torch.float64)
+    assert_close(emb(x), torch.cat([(x * freqs).sin(), (x * freqs).cos()]))
+    assert_close(
+        SinusoidalEmbedding(1, min_period=0.5).frequencies(dtype=torch.float64),
+        torch.tensor([2.0], dtype=torch.float64),
+    )
+    with pytest.raises(ValueError, match="min_period"):
+        SinusoidalEmbedding(4, max_period=1.0, min_period=2.0)
+    with pytest.raises(ValueError, match="min_period"):
+        SinusoidalEmbedding(4, min_period=0.0)
+
+
+def test_denoiser_pose_periods_apply_to_the_pose_only() -> None:
+    net = MLPDenoiser(4, 3, 3, pose_min_period=0.0625, pose_max_period=10.0)
+    assert_close(net.pose_embedding.frequencies()[[0, -1]], torch.tensor([16.0, 0.1]))
+    assert_close(net.embedding.frequencies()[[0, -1]], torch.tensor([1.0, 1e-4]))  # noise level: reference
+    assert "pose_periods=(0.0625, 10)" in repr(net)
+    assert net(torch.randn(2, 5, 3), torch.tensor(3.0), torch.randn(2, 4)).shape == (2, 5, 3)
+
+
 # ---------------------------------------------------------------------------- blocks
 
 

@@ -48,6 +48,9 @@ class MLPDenoiser(nn.Module):
         activation: activation name, used inside the blocks and before the output layer.
         zero_init_output: start with a zero output layer (the network then outputs 0 at init).
             The reference does not do this.
+        pose_min_period, pose_max_period: fastest and slowest period of the embedding of ``x``
+            (reference: 1 and 1e4; see :class:`~posediff.nn.SinusoidalEmbedding`). The noise-level
+            embedding keeps the reference's frequencies.
 
     All linear layers are initialised like the reference (flax): LeCun-normal kernels, zero biases.
     """
@@ -65,6 +68,8 @@ class MLPDenoiser(nn.Module):
         time_dim: int = 256,
         activation: str = "leaky_relu",
         zero_init_output: bool = False,
+        pose_min_period: float = 1.0,
+        pose_max_period: float = 1e4,
     ) -> None:
         super().__init__()
         if cond_dim < 0 or in_dim < 1 or out_dim < 1 or hidden_dim < 1 or time_dim < 1 or num_layers < 1:
@@ -84,8 +89,9 @@ class MLPDenoiser(nn.Module):
         self.zero_init_output = bool(zero_init_output)
 
         self.embedding = SinusoidalEmbedding(num_frequencies)
+        self.pose_embedding = SinusoidalEmbedding(num_frequencies, pose_max_period, pose_min_period)
         self.time_proj = LecunLinear(self.embedding.out_features(1), time_dim)
-        self.pose_proj = LecunLinear(self.embedding.out_features(in_dim), hidden_dim, bias=False)
+        self.pose_proj = LecunLinear(self.pose_embedding.out_features(in_dim), hidden_dim, bias=False)
         self.cond_blocks = nn.ModuleList(
             [block_cls(hidden_dim, cond_dim, activation) for _ in range(num_layers)] if cond_dim > 0 else []
         )
@@ -134,7 +140,7 @@ class MLPDenoiser(nn.Module):
         cond = self._cond(cond, lead)
 
         t = self.time_proj(self.embedding(noise.unsqueeze(-1)))  # (*noise.shape, time_dim)
-        h = self.pose_proj(self.embedding(x))  # (*lead, hidden_dim)
+        h = self.pose_proj(self.pose_embedding(x))  # (*lead, hidden_dim)
         for i, time_block in enumerate(self.time_blocks):
             if cond is not None:
                 cond_block = self.cond_blocks[i]
@@ -183,7 +189,8 @@ class MLPDenoiser(nn.Module):
         return (
             f"cond_dim={self.cond_dim}, in_dim={self.in_dim}, out_dim={self.out_dim}, "
             f"hidden_dim={self.hidden_dim}, num_layers={self.num_layers}, block={self.block!r}, "
-            f"time_dim={self.time_dim}, zero_init_output={self.zero_init_output}"
+            f"time_dim={self.time_dim}, zero_init_output={self.zero_init_output}, "
+            f"pose_periods=({self.pose_embedding.min_period:g}, {self.pose_embedding.max_period:g})"
         )
 
 
