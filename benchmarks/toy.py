@@ -3,6 +3,9 @@
     python benchmarks/toy.py                 # train + evaluate every variant (~40 min on 2 cores)
     python benchmarks/toy.py --only se3_autograd --max-steps 500   # one variant, shorter
     python benchmarks/toy.py --collect       # rebuild the table from finished runs
+    python benchmarks/toy.py --reevaluate    # add samplers now in eval.samplers to finished runs
+    python benchmarks/toy.py --max-steps 3000   # the ablation budget: runs in outputs/toy_3000/,
+                                                # results in benchmarks/results/toy_3000.{json,md}
 
 Each variant is one ``posediff fit +experiment=toy_*`` run (Hydra overrides below), trained for
 ``trainer.max_steps`` and evaluated with the random walk, the ancestral and the few-step sampler
@@ -31,9 +34,7 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results" / "toy.json"
-TABLE = RESULTS.with_suffix(".md")
-RUNS = ROOT / "outputs" / "toy"
+RESULTS_DIR = ROOT / "benchmarks" / "results"
 
 VARIANTS: dict[str, list[str]] = {
     "so3_surrogate": ["+experiment=toy_so3"],
@@ -46,8 +47,14 @@ VARIANTS: dict[str, list[str]] = {
 DISCRETE = ("tet", "cube", "icosa")
 
 
-def run_variant(name: str, extra: list[str]) -> Path:
-    out = RUNS / name
+def _names(max_steps: int | None) -> tuple[Path, Path]:
+    """(runs folder, results JSON) for the experiment's own budget or an overridden one."""
+    tag = "toy" if max_steps is None else f"toy_{max_steps}"
+    return ROOT / "outputs" / tag, RESULTS_DIR / f"{tag}.json"
+
+
+def run_variant(name: str, extra: list[str], runs_dir: Path) -> Path:
+    out = runs_dir / name
     exe = Path(sys.executable).with_name("posediff")
     cmd = [str(exe), "fit", *VARIANTS[name], *extra, f"hydra.run.dir={out}"]
     print("$", " ".join(cmd[1:]), flush=True)
@@ -58,10 +65,10 @@ def run_variant(name: str, extra: list[str]) -> Path:
     return out / "metrics.json"
 
 
-def collect() -> dict[str, Any]:
+def collect(runs_dir: Path) -> dict[str, Any]:
     runs: dict[str, Any] = {}
     for name in VARIANTS:
-        path = RUNS / name / "metrics.json"
+        path = runs_dir / name / "metrics.json"
         if path.exists():
             runs[name] = json.loads(path.read_text())
     return runs
@@ -102,6 +109,52 @@ def table(runs: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def reevaluate(name: str, runs_dir: Path, extra: list[str]) -> None:
+    """Evaluate a finished run's last checkpoint with the samplers of the *current* ``eval`` config
+    that its ``metrics.json`` lacks (no retraining), and add them to it."""
+    import torch
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from posediff._io import atomic_write_json
+    from posediff.config import register_resolvers
+    from posediff.evaluate import evaluate
+
+    out = runs_dir / name
+    metrics_path = out / "metrics.json"
+    metrics = json.loads(metrics_path.read_text())
+    ckpt = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    register_resolvers()
+    stored = OmegaConf.create(ckpt["posediff_config"])
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        current = compose(
+            "fit", overrides=[*VARIANTS[name], *extra, "trainer.logger=null", "trainer.callbacks=null"]
+        )
+    module = instantiate(stored.module)
+    module.load_state_dict(ckpt["state_dict"])
+    data = instantiate(stored.data)
+    data.setup("fit")
+    missing = {k: v for k, v in current.eval.samplers.items() if k not in metrics["after"]}
+    for sampler_name, sampler_cfg in missing.items():
+        print(f"{name}: evaluating {sampler_name}", flush=True)
+        sampler = instantiate(sampler_cfg)(module.diffusion)
+        metrics["after"][sampler_name] = {
+            str(int(steps)): evaluate(
+                module,
+                data.test_dataloader(),
+                list(data.shapes),
+                num_samples=int(stored.eval.num_samples),
+                num_steps=int(steps),
+                sampler=sampler,
+                seed=int(stored.eval.seed),
+            )
+            for steps in stored.eval.num_steps
+        }
+    if missing:
+        atomic_write_json(metrics_path, metrics)
+
+
 def _atomic_write(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
@@ -115,14 +168,23 @@ def main() -> int:
     ap.add_argument("--only", nargs="*", choices=list(VARIANTS), help="run only these variants")
     ap.add_argument("--max-steps", type=int, default=None, help="override trainer.max_steps")
     ap.add_argument("--collect", action="store_true", help="only collect finished runs")
+    ap.add_argument(
+        "--reevaluate",
+        action="store_true",
+        help="add the current eval.samplers to finished runs, then collect",
+    )
     args = ap.parse_args()
     extra = [f"trainer.max_steps={args.max_steps}"] if args.max_steps else []
-    if not args.collect:
-        for name in args.only or list(VARIANTS):
-            run_variant(name, extra)
-    runs = collect()
+    runs_dir, results = _names(args.max_steps)
+    for name in args.only or list(VARIANTS):
+        if args.reevaluate:
+            if (runs_dir / name / "metrics.json").exists():
+                reevaluate(name, runs_dir, extra)
+        elif not args.collect:
+            run_variant(name, extra, runs_dir)
+    runs = collect(runs_dir)
     if not runs:
-        print("no finished runs under", RUNS, file=sys.stderr)
+        print("no finished runs under", runs_dir, file=sys.stderr)
         return 1
     import torch
 
@@ -134,11 +196,11 @@ def main() -> int:
         "variants": {k: VARIANTS[k] for k in runs},
         "runs": runs,
     }
-    _atomic_write(RESULTS, json.dumps(doc, indent=1) + "\n")
+    _atomic_write(results, json.dumps(doc, indent=1) + "\n")
     md = table(runs)
-    _atomic_write(TABLE, md)
+    _atomic_write(results.with_suffix(".md"), md)
     print(md)
-    print(f"wrote {RESULTS.relative_to(ROOT)} and {TABLE.relative_to(ROOT)}")
+    print(f"wrote {results.relative_to(ROOT)} and {results.with_suffix('.md').relative_to(ROOT)}")
     return 0
 
 
