@@ -13,8 +13,11 @@ the continuous shapes. On SE(3) and R³×SO(3) the network must also recover the
 Training poses are ``R ~ Haar``, ``t ~ U[−b, b]³``; because R is Haar-uniform, R given its
 canonical representative is uniform over the equivalent set, which is exactly the target.
 
-``num_poses = M`` restricts the orientations to M fixed canonical poses per shape (drawn from
-``pose_seed``, shared by the train and test splits): a training rotation is ``R_m · S`` with S a
+``num_poses = M`` restricts the orientations to M fixed canonical poses per shape (chosen from
+``pose_seed``, shared by the train and test splits, and spread out: farthest-point selection among
+random candidates under the symmetry-aware distance, so that no two conditions are a few degrees
+apart — two poses 13° apart modulo the symmetries, as plain random draws gave, are learned as one
+condition with satellite modes 13° off): a training rotation is ``R_m · S`` with S a
 uniformly random symmetry (and ``Rz(α)``/flip for cone and cylinder), so the target is still the
 full equivalent set, but the network has M conditions per shape to learn instead of a continuum.
 The CPU toy uses it (the continuum needs far more training than minutes; see the README).
@@ -31,7 +34,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from ..lie import LieGroup, get_group
 from ..lie.so3 import uniform_rotation
-from ..symmetry import SHAPES, canonical_rotation, is_continuous, symmetry_group
+from ..symmetry import SHAPES, canonical_rotation, is_continuous, min_angle_to_equivalents, symmetry_group
 
 
 class SymmetryToy(Dataset[dict[str, Tensor]]):
@@ -123,9 +126,7 @@ def _rotations_from_pose_set(
     cycle: bool,
 ) -> Tensor:
     """``R_m · S``: one of ``num_poses`` fixed poses of the sample's shape times a random symmetry."""
-    base = uniform_rotation(
-        (len(shapes), num_poses), torch.Generator().manual_seed(pose_seed), "cpu", torch.float64
-    )
+    base = torch.stack([spread_poses(shape, num_poses, pose_seed) for shape in shapes])
     total = shape_idx.numel()
     if cycle:  # test split: go through the poses in order
         m = torch.cat([torch.arange((shape_idx == k).sum()) % num_poses for k in range(len(shapes))])
@@ -150,6 +151,24 @@ def _rotations_from_pose_set(
             sym = group[torch.randint(0, len(group), (n,), generator=gen)]
         out[sel] = base[k, m[sel]] @ sym
     return out
+
+
+def spread_poses(shape: str, num_poses: int, seed: int, candidates_per_pose: int = 32) -> Tensor:
+    """``num_poses`` canonical rotations of ``shape``, far apart modulo its symmetries, ``(M, 3, 3)`` float64.
+
+    Greedy farthest-point selection among ``candidates_per_pose · M`` Haar-random candidates drawn
+    from ``seed``, with the distance ``min_S ∠(R_i, R_j S)``
+    (:func:`posediff.symmetry.min_angle_to_equivalents`); deterministic given the seed.
+    """
+    gen = torch.Generator().manual_seed(int(seed))
+    cand = uniform_rotation((max(int(num_poses) * candidates_per_pose, 1),), gen, "cpu", torch.float64)
+    chosen = [0]
+    dist = min_angle_to_equivalents(shape, cand, cand[0])
+    for _ in range(int(num_poses) - 1):
+        nxt = int(dist.argmax())
+        chosen.append(nxt)
+        dist = torch.minimum(dist, min_angle_to_equivalents(shape, cand, cand[nxt]))
+    return torch.stack([canonical_rotation(shape, cand[i]) for i in chosen])
 
 
 class SymmetryToyDataModule(L.LightningDataModule):
