@@ -1,17 +1,17 @@
 """The symmetric-shape toy, every variant of the paper's ablations, on the CPU.
 
-    python benchmarks/toy.py                 # train + evaluate every variant (~40 min on 2 cores)
+    python benchmarks/toy.py                 # train + evaluate every variant (~35 min each on 1 core)
     python benchmarks/toy.py --only se3_autograd --max-steps 500   # one variant, shorter
     python benchmarks/toy.py --collect       # rebuild the table from finished runs
-    python benchmarks/toy.py --reevaluate    # add samplers now in eval.samplers to finished runs
     python benchmarks/toy.py --max-steps 3000   # the ablation budget: runs in outputs/toy_3000/,
                                                 # results in benchmarks/results/toy_3000.{json,md}
 
 Each variant is one ``posediff fit +experiment=toy_*`` run (Hydra overrides below), trained for
 ``trainer.max_steps`` and evaluated with the random walk, the ancestral and the few-step sampler
-at 5 / 10 / 50 / 100 steps (200 samples for each of 8 test conditions per shape). Runs go to
-``outputs/toy/<variant>/`` (metrics.json there); the collected results go to
-``benchmarks/results/toy.json`` and the markdown table to ``benchmarks/results/toy.md``.
+(deterministic, and with full re-noising) at 5 / 10 / 50 / 100 steps (200 samples for each of 4
+test conditions per shape). Runs go to ``outputs/toy/<variant>/`` (metrics.json there); the
+collected results go to ``benchmarks/results/toy.json`` and the markdown table to
+``benchmarks/results/toy.md`` (``toy_<steps>`` for a ``--max-steps`` budget).
 
 Variants (what the paper compares, Tables 5–6 and the supplement):
 
@@ -109,52 +109,6 @@ def table(runs: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def reevaluate(name: str, runs_dir: Path, extra: list[str]) -> None:
-    """Evaluate a finished run's last checkpoint with the samplers of the *current* ``eval`` config
-    that its ``metrics.json`` lacks (no retraining), and add them to it."""
-    import torch
-    from hydra import compose, initialize_config_dir
-    from hydra.utils import instantiate
-    from omegaconf import OmegaConf
-
-    from posediff._io import atomic_write_json
-    from posediff.config import register_resolvers
-    from posediff.evaluate import evaluate
-
-    out = runs_dir / name
-    metrics_path = out / "metrics.json"
-    metrics = json.loads(metrics_path.read_text())
-    ckpt = torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
-    register_resolvers()
-    stored = OmegaConf.create(ckpt["posediff_config"])
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        current = compose(
-            "fit", overrides=[*VARIANTS[name], *extra, "trainer.logger=null", "trainer.callbacks=null"]
-        )
-    module = instantiate(stored.module)
-    module.load_state_dict(ckpt["state_dict"])
-    data = instantiate(stored.data)
-    data.setup("fit")
-    missing = {k: v for k, v in current.eval.samplers.items() if k not in metrics["after"]}
-    for sampler_name, sampler_cfg in missing.items():
-        print(f"{name}: evaluating {sampler_name}", flush=True)
-        sampler = instantiate(sampler_cfg)(module.diffusion)
-        metrics["after"][sampler_name] = {
-            str(int(steps)): evaluate(
-                module,
-                data.test_dataloader(),
-                list(data.shapes),
-                num_samples=int(stored.eval.num_samples),
-                num_steps=int(steps),
-                sampler=sampler,
-                seed=int(stored.eval.seed),
-            )
-            for steps in stored.eval.num_steps
-        }
-    if missing:
-        atomic_write_json(metrics_path, metrics)
-
-
 def _atomic_write(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
@@ -168,19 +122,11 @@ def main() -> int:
     ap.add_argument("--only", nargs="*", choices=list(VARIANTS), help="run only these variants")
     ap.add_argument("--max-steps", type=int, default=None, help="override trainer.max_steps")
     ap.add_argument("--collect", action="store_true", help="only collect finished runs")
-    ap.add_argument(
-        "--reevaluate",
-        action="store_true",
-        help="add the current eval.samplers to finished runs, then collect",
-    )
     args = ap.parse_args()
     extra = [f"trainer.max_steps={args.max_steps}"] if args.max_steps else []
     runs_dir, results = _names(args.max_steps)
-    for name in args.only or list(VARIANTS):
-        if args.reevaluate:
-            if (runs_dir / name / "metrics.json").exists():
-                reevaluate(name, runs_dir, extra)
-        elif not args.collect:
+    if not args.collect:
+        for name in args.only or list(VARIANTS):
             run_variant(name, extra, runs_dir)
     runs = collect(runs_dir)
     if not runs:
