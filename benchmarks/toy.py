@@ -18,7 +18,8 @@ Variants (what the paper compares, Tables 5–6 and the supplement):
 * ``so3_surrogate`` — SO(3), concentrated Gaussian N, surrogate score, Fourier blocks (reference);
 * ``so3_scale_bias`` — the same with scale-bias (FiLM) blocks instead of Fourier blocks;
 * ``so3_igso3`` — IG_SO(3) noise with its exact (closed-form) score instead of N;
-* ``se3_surrogate`` / ``se3_closed_form`` / ``se3_autograd`` — SE(3) with the three score targets.
+* ``se3_surrogate`` / ``se3_closed_form`` / ``se3_autograd`` — SE(3) with the three score targets;
+* ``se3_matrix`` — beyond the paper: the network sees the entries of X̃ instead of the twist Log X̃.
 """
 
 import argparse
@@ -43,6 +44,7 @@ VARIANTS: dict[str, list[str]] = {
     "se3_surrogate": ["+experiment=toy_se3"],
     "se3_closed_form": ["+experiment=toy_se3", "diffusion.score=closed_form"],
     "se3_autograd": ["+experiment=toy_se3", "diffusion.score=autograd"],
+    "se3_matrix": ["+experiment=toy_se3", "module.pose_input=matrix"],
 }
 DISCRETE = ("tet", "cube", "icosa")
 
