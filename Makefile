@@ -48,7 +48,7 @@ bench: ## time the Lie group ops against peer libraries (writes benchmarks/resul
 bench-tuned: ## the same with glibc keeping large blocks (writes benchmarks/results/lie_ops_tuned_malloc.json)
 	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/lie_ops.py --tuned-malloc
 
-toy: ## the symmetric-shape toy, every ablation variant (~40 min; writes benchmarks/results/toy.json, toy.md)
+toy: ## the symmetric-shape toy, every ablation variant (~2.5 h on one core; writes benchmarks/results/toy.json, toy.md)
 	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/toy.py
 
 bench-sampler: ## time per denoising step, network vs group math (writes benchmarks/results/sampler.json)
