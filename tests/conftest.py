@@ -5,10 +5,15 @@ import os
 import pytest
 import torch
 
-# Set before anything imports OpenGL (rendering arrives in a later issue; see install notes).
+# Set before anything imports OpenGL, and import triton before any GL context exists (importing it
+# afterwards segfaults; ../shared/docs/install-notes.md). posediff.data.symsol.render does the same.
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 os.environ.setdefault("LP_NUM_THREADS", "0")
 os.environ.setdefault("MPLBACKEND", "Agg")
+try:
+    import triton  # noqa: F401
+except Exception:  # not installed (CPU-only torch) or broken: nothing to protect against
+    pass
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:

@@ -23,6 +23,16 @@ COMMANDS: dict[str, Command] = {
     "groups": Command("list the registered Lie groups and their tensor layouts", None),
     "check": Command("run the Lie group contract on a group from config: posediff check group=so3", "check"),
     "fit": Command("train a score model and evaluate it: posediff fit +experiment=toy_so3", "fit"),
+    "data": Command("make datasets: posediff data render|grid [key=value ...]", None),
+}
+
+#: ``posediff data <subcommand>``.
+DATA_COMMANDS: dict[str, Command] = {
+    "render": Command(
+        "render a SYMSOL / SYMSOL-T split into shards: posediff data render dataset=symsolt split=train out=DIR",
+        "render",
+    ),
+    "grid": Command("a picture of the five shapes: posediff data grid out=symsolt_grid.png", "grid"),
 }
 
 
@@ -82,7 +92,12 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
     from .config import register_resolvers
 
     register_resolvers()
-    task: Callable[[DictConfig], int] = {"check": tasks.check_group, "fit": tasks.fit}[name]
+    task: Callable[[DictConfig], int] = {
+        "check": tasks.check_group,
+        "fit": tasks.fit,
+        "data render": tasks.render_data,
+        "data grid": tasks.render_grid,
+    }[name]
     conf = config_dir()
     if not (conf / f"{cmd.config}.yaml").exists():
         return _fail(
@@ -114,6 +129,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     cmd = COMMANDS.get(name)
     if cmd is None:
         return _fail(f"unknown command {name!r}; available: {', '.join(COMMANDS)} (see posediff --help)")
+    if name == "data":
+        sub = rest[0] if rest else ""
+        if sub in ("", "-h", "--help"):
+            width = max(map(len, DATA_COMMANDS))
+            print("usage: posediff data <subcommand> [key=value ...]\n\nsubcommands:")
+            print("\n".join(f"  {k:<{width}}  {c.help}" for k, c in DATA_COMMANDS.items()))
+            return 0 if sub else 2
+        if sub not in DATA_COMMANDS:
+            return _fail(f"unknown data subcommand {sub!r}; available: {', '.join(DATA_COMMANDS)}")
+        return _run_hydra(f"data {sub}", DATA_COMMANDS[sub], rest[1:])
     if cmd.config is None:
         if rest and rest[0] in ("-h", "--help"):
             print(f"posediff {name}: {cmd.help}")

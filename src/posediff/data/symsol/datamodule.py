@@ -1,0 +1,251 @@
+"""SYMSOL / SYMSOL-T as PyTorch datasets and a Lightning ``DataModule``.
+
+Two modes:
+
+* ``shards`` (training): streams the shards written by ``posediff data render`` — each epoch the
+  shards are shuffled and split across DDP ranks and ``DataLoader`` workers, and the samples within
+  a shard are shuffled; memory holds one shard per worker.
+* ``render`` (quick runs, no files): renders every sample on the fly from its seeded pose; each
+  worker process creates its own renderer on first use.
+
+A sample (and, stacked, a batch) is a dict: ``image`` (3, H, W) float32 in [0, 1]; ``pose`` (4, 4)
+camera-frame [R | t]; ``rotation`` (3, 3); ``translation`` (3,) relative to the scene centre
+(t − (0, 0, SCENE_DISTANCE), in [−1, 1]³ for SYMSOL-T) — the diffusion target; ``shape_id`` int64
+(look up the equivalent poses with :func:`~posediff.data.symsol.equivalent_poses`); ``K`` (3, 3);
+``index``; and with ``with_depth=True`` also ``mask`` (H, W) bool and ``depth`` (H, W) float32.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_info
+
+from ...symmetry import SHAPES
+from .poses import check_spec, sample_poses
+from .render import SCENE_DISTANCE, SymsolRenderer, intrinsics
+from .shards import SymsolShards
+
+_CENTRE = np.array([0.0, 0.0, SCENE_DISTANCE])
+
+
+def to_sample(
+    rgb: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    shape_id: int,
+    K: np.ndarray,
+    index: int,
+    mask: np.ndarray | None = None,
+    depth: np.ndarray | None = None,
+) -> dict[str, Any]:
+    pose = np.eye(4, dtype=np.float32)
+    pose[:3, :3], pose[:3, 3] = R, t
+    out = {
+        "image": torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))).float().div_(255.0),
+        "pose": torch.from_numpy(pose),
+        "rotation": torch.from_numpy(np.asarray(R, dtype=np.float32)),
+        "translation": torch.from_numpy(np.asarray(t - _CENTRE, dtype=np.float32)),
+        "shape_id": torch.tensor(shape_id, dtype=torch.int64),
+        "K": torch.from_numpy(np.asarray(K, dtype=np.float32)),
+        "index": torch.tensor(index, dtype=torch.int64),
+    }
+    if mask is not None and depth is not None:
+        out["mask"] = torch.from_numpy(np.ascontiguousarray(mask))
+        out["depth"] = torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))
+    return out
+
+
+class SymsolRenderDataset(Dataset):
+    """Renders sample ``i`` of a split on the fly (map-style; deterministic per index)."""
+
+    def __init__(
+        self,
+        dataset: str = "symsolt",
+        variant: str | None = None,
+        split: str = "train",
+        n_per_shape: int = 1000,
+        image_size: int = 224,
+        seed: int = 0,
+        shapes: Sequence[str] = SHAPES,
+        with_depth: bool = False,
+    ) -> None:
+        self.variant = check_spec(dataset, variant, split)
+        self.poses = sample_poses(dataset, self.variant, split, n_per_shape, seed, shapes)
+        self.image_size = int(image_size)
+        self.K = intrinsics(self.image_size)
+        self.with_depth = with_depth
+        self._renderer: SymsolRenderer | None = None  # made lazily, in the process that renders
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        if self._renderer is None:
+            self._renderer = SymsolRenderer(self.image_size)
+        p = self.poses
+        out = self._renderer.render(int(p.shape_id[i]), p.R[i], p.t[i])
+        extra = (out.mask, out.depth) if self.with_depth else (None, None)
+        return to_sample(out.rgb, p.R[i], p.t[i], int(p.shape_id[i]), self.K, int(i), *extra)
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state["_renderer"] = None
+        return state
+
+
+class SymsolShardDataset(IterableDataset):
+    """Streams a rendered split. ``shuffle``: shard order and in-shard order change every epoch
+    (seeded by ``seed`` and :meth:`set_epoch`); shards are split across DDP ranks, then workers."""
+
+    def __init__(
+        self, shards: SymsolShards, *, shuffle: bool = True, seed: int = 0, with_depth: bool = False
+    ) -> None:
+        self.shards = shards
+        self.shuffle = shuffle
+        self.seed = seed
+        self.with_depth = with_depth
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    @staticmethod
+    def _rank_world() -> tuple[int, int]:
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            return torch.distributed.get_rank(), torch.distributed.get_world_size()
+        return 0, 1
+
+    def _my_shards(self) -> list[int]:
+        order = np.arange(self.shards.num_shards)
+        if self.shuffle:
+            order = np.random.default_rng([self.seed, self.epoch]).permutation(order)
+        rank, world = self._rank_world()
+        order = order[rank::world]
+        info = get_worker_info()
+        if info is not None:
+            order = order[info.id :: info.num_workers]
+        return [int(k) for k in order]
+
+    def __len__(self) -> int:
+        _, world = self._rank_world()
+        return len(self.shards) // world
+
+    def __iter__(self) -> Iterator[dict[str, Any]]:
+        K = self.shards.K
+        index = self.shards.index
+        for k in self._my_shards():
+            z = self.shards.load_shard(k)
+            n = len(z["index"])
+            order = (
+                np.random.default_rng([self.seed, self.epoch, k]).permutation(n) if self.shuffle else range(n)
+            )
+            for j in order:
+                i = int(z["index"][j])
+                extra = (z["mask"][j], z["depth"][j]) if self.with_depth else (None, None)
+                yield to_sample(
+                    z["rgb"][j], index["R"][i], index["t"][i], int(index["shape_id"][i]), K, i, *extra
+                )
+
+
+class SymsolDataModule(L.LightningDataModule):
+    """SYMSOL / SYMSOL-T train and test loaders (``conf/data/symsol*.yaml``).
+
+    ``mode="shards"`` reads ``<root>/train`` and ``<root>/test`` (made by ``posediff data render``;
+    a missing folder → one line with the command that makes it); ``mode="render"`` renders
+    ``n_per_shape_train`` / ``n_per_shape_test`` samples per shape on the fly at ``image_size``.
+    """
+
+    def __init__(
+        self,
+        dataset: str = "symsolt",
+        variant: str | None = None,
+        *,
+        mode: str = "shards",
+        root: str | None = None,
+        image_size: int = 224,
+        n_per_shape_train: int = 1000,
+        n_per_shape_test: int = 100,
+        shapes: Sequence[str] = SHAPES,
+        seed: int = 0,
+        batch_size: int = 16,
+        num_workers: int = 0,
+        with_depth: bool = False,
+    ) -> None:
+        super().__init__()
+        if mode not in ("shards", "render"):
+            raise ValueError(f"unknown data mode {mode!r}; available: shards, render")
+        self.variant = check_spec(dataset, variant, "train")
+        if mode == "shards" and not root:
+            raise ValueError(
+                f"data.root is not set: point it at a rendered {dataset} folder, or use data.mode=render"
+            )
+        self.dataset, self.mode, self.root = dataset, mode, root
+        self.image_size, self.shapes, self.seed = int(image_size), tuple(shapes), seed
+        self.n_per_shape = {"train": n_per_shape_train, "test": n_per_shape_test}
+        self.batch_size, self.num_workers, self.with_depth = batch_size, num_workers, with_depth
+        self.train: Dataset | None = None
+        self.test: Dataset | None = None
+
+    def _split(self, split: str) -> Dataset:
+        if self.mode == "render":
+            return SymsolRenderDataset(
+                self.dataset,
+                self.variant,
+                split,
+                self.n_per_shape[split],
+                self.image_size,
+                self.seed,
+                self.shapes,
+                self.with_depth,
+            )
+        shards = SymsolShards(Path(str(self.root)), dataset=self.dataset, variant=self.variant, split=split)
+        m = shards.meta
+        if (m["dataset"], m["variant"]) != (self.dataset, self.variant):
+            raise ValueError(
+                f"{shards.path} holds {m['dataset']}/{m['variant']}, but the config asks for {self.dataset}/{self.variant}"
+            )
+        if m["image_size"] != self.image_size:
+            raise ValueError(
+                f"{shards.path} was rendered at {m['image_size']} px, the config asks for {self.image_size} "
+                f"(set data.image_size={m['image_size']} or render again)"
+            )
+        return SymsolShardDataset(
+            shards, shuffle=split == "train", seed=self.seed, with_depth=self.with_depth
+        )
+
+    def setup(self, stage: str | None = None) -> None:
+        if stage in (None, "fit") and self.train is None:
+            self.train = self._split("train")
+        if stage in (None, "fit", "validate", "test", "predict") and self.test is None:
+            self.test = self._split("test")
+
+    def _loader(self, ds: Dataset, shuffle: bool) -> DataLoader:
+        return DataLoader(
+            ds,
+            batch_size=self.batch_size,
+            shuffle=shuffle and not isinstance(ds, IterableDataset),
+            num_workers=self.num_workers,
+            persistent_workers=False,
+            drop_last=shuffle,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        assert self.train is not None, "call setup() first"
+        if isinstance(self.train, SymsolShardDataset) and self.trainer is not None:
+            self.train.set_epoch(self.trainer.current_epoch)
+        return self._loader(self.train, shuffle=True)
+
+    def test_dataloader(self) -> DataLoader:
+        assert self.test is not None, "call setup() first"
+        return self._loader(self.test, shuffle=False)
+
+    val_dataloader = test_dataloader
+
+
+__all__ = ["SymsolDataModule", "SymsolRenderDataset", "SymsolShardDataset", "to_sample"]
