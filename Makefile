@@ -39,8 +39,9 @@ demo: ## the Lie group walk-through (notebooks/01) in full mode; figures in outp
 	POSEDIFF_FAST=0 POSEDIFF_NOTEBOOK_OUT=outputs/demo MPLBACKEND=Agg $(PY) notebooks/01_lie_groups.py
 	@echo "figures: $$(ls outputs/demo/*.png)"
 
-figures: ## regenerate the README figure (docs/images/)
+figures: ## regenerate the README figures (docs/images/)
 	POSEDIFF_FAST=0 POSEDIFF_NOTEBOOK_OUT=docs/images MPLBACKEND=Agg $(PY) notebooks/01_lie_groups.py
+	$(VENV)/bin/posediff data grid out=docs/images/symsolt_grid.png
 
 bench: ## time the Lie group ops against peer libraries (writes benchmarks/results/lie_ops.json)
 	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/lie_ops.py
@@ -50,6 +51,9 @@ bench-tuned: ## the same with glibc keeping large blocks (writes benchmarks/resu
 
 toy: ## the symmetric-shape toy, every ablation variant (~2.5 h on one core; writes benchmarks/results/toy.json, toy.md)
 	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/toy.py
+
+bench-render: ## SYMSOL-T rendering speed vs a training step (writes benchmarks/results/render.json)
+	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/render.py
 
 bench-sampler: ## time per denoising step, network vs group math (writes benchmarks/results/sampler.json)
 	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/sampler.py
@@ -65,4 +69,4 @@ clean: ## remove caches and outputs (keeps .venv)
 	rm -rf .pytest_cache outputs multirun build dist
 	find . -name __pycache__ -type d -prune -exec rm -rf {} +
 
-.PHONY: help install system-deps test test-all demo figures bench bench-tuned notebooks lint clean
+.PHONY: help install system-deps test test-all demo figures bench bench-tuned bench-render notebooks lint clean

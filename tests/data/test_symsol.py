@@ -361,3 +361,53 @@ def test_cli_render_and_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert main(["data", "render", "preset=huge"]) == 2
     assert "available: cpu, paper" in capsys.readouterr().err
     assert main(["data", "explode"]) == 2
+
+
+# ----------------------------------------------------------------------------- configs
+CONF = Path(__file__).resolve().parents[2] / "conf"
+
+
+def _compose(name: str, overrides: list[str]):  # noqa: ANN202
+    from hydra import compose, initialize_config_dir
+
+    from posediff.config import register_resolvers
+
+    register_resolvers()
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose(config_name=name, overrides=overrides)
+
+
+@pytest.mark.parametrize(
+    ("preset", "split", "size", "n"),
+    [("cpu", "train", 64, 2000), ("paper", "train", 224, 45000), ("paper", "test", 224, 5000)],
+)
+def test_render_presets(preset: str, split: str, size: int, n: int) -> None:
+    cfg = _compose("render", [f"preset={preset}", f"split={split}"])
+    assert (cfg.image_size, cfg.n_per_shape) == (size, n)
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (CONF / "data").glob("symsol*.yaml")))
+def test_every_symsol_data_config_builds(name: str, tmp_path: Path) -> None:
+    from hydra.utils import instantiate
+
+    cfg = _compose(
+        "fit",
+        [
+            f"data={name}",
+            "data.mode=render",
+            "data.n_per_shape_train=1",
+            "data.image_size=32",
+            "data.batch_size=5",
+        ],
+    )
+    dm = instantiate(cfg.data)
+    assert isinstance(dm, SymsolDataModule) and dm.variant == cfg.data.variant
+    dm.setup("fit")
+    _check_batch(next(iter(dm.train_dataloader())), 5, 32)
+    # shards mode without the folder: one line with the command that makes it
+    cfg = _compose("fit", [f"data={name}", f"data.root={tmp_path / 'none'}"])
+    with pytest.raises(
+        FileNotFoundError,
+        match=f"make it with: posediff data render dataset={cfg.data.dataset} variant={cfg.data.variant}",
+    ):
+        instantiate(cfg.data).setup("fit")
