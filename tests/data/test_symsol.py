@@ -212,6 +212,10 @@ def test_pose_sampling_is_deterministic_and_splits_differ() -> None:
     )
     with pytest.raises(ValueError, match="available: uniform, edge, centered"):
         sample_poses("symsolt", "corner", "train", 5, seed=0)
+    with pytest.raises(ValueError, match="no shapes given"):
+        sample_poses("symsolt", "uniform", "train", 5, seed=0, shapes=[])
+    with pytest.raises(ValueError, match="at least 1"):
+        sample_poses("symsolt", "uniform", "train", 0, seed=0)
 
 
 # ----------------------------------------------------------------------------- shards
@@ -301,6 +305,8 @@ def test_datamodule_streams_shards_and_renders_on_the_fly(tmp_path: Path) -> Non
     assert not torch.equal(seen, torch.arange(40)), "training order must be shuffled"
     test = torch.cat([b["index"] for b in dm.test_dataloader()])
     assert test.tolist() == list(range(10))
+    with pytest.raises(ValueError, match="holds the shapes"):
+        SymsolDataModule("symsolt", "uniform", root=str(tmp_path), image_size=32, shapes=["tet"]).setup("fit")
     with pytest.raises(ValueError, match="rendered at 32 px"):
         SymsolDataModule("symsolt", "uniform", root=str(tmp_path), image_size=64).setup("fit")
 

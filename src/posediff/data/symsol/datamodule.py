@@ -210,6 +210,10 @@ class SymsolDataModule(L.LightningDataModule):
             raise ValueError(
                 f"{shards.path} holds {m['dataset']}/{m['variant']}, but the config asks for {self.dataset}/{self.variant}"
             )
+        if tuple(m["shapes"]) != self.shapes:
+            raise ValueError(
+                f"{shards.path} holds the shapes {m['shapes']}, the config asks for {list(self.shapes)}"
+            )
         if m["image_size"] != self.image_size:
             raise ValueError(
                 f"{shards.path} was rendered at {m['image_size']} px, the config asks for {self.image_size} "

@@ -96,6 +96,8 @@ def sample_poses(
     variant = check_spec(dataset, variant, split)
     if n_per_shape < 1:
         raise ValueError(f"n_per_shape must be at least 1, got {n_per_shape}")
+    if not shapes:
+        raise ValueError(f"no shapes given; available: {', '.join(SHAPES)}")
     ids, Rs, ts = [], [], []
     for shape in shapes:
         sid = SHAPE_IDS[shape_name(shape)]
