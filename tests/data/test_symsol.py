@@ -276,20 +276,25 @@ def test_missing_and_corrupt_data_fail_with_one_line(tmp_path: Path) -> None:
         list(ds.iter_samples())
     with pytest.raises(ValueError, match="data.root is not set"):
         SymsolDataModule("symsolt", root=None)
+    with pytest.raises(ValueError, match="3-D rotation group"):
+        SymsolDataModule("symsolt", mode="render", group="se2")
 
 
 # ----------------------------------------------------------------------------- DataModule
 def _check_batch(batch: dict, n: int, size: int) -> None:
     assert batch["image"].shape == (n, 3, size, size) and batch["image"].dtype == torch.float32
     assert 0 <= batch["image"].min() and batch["image"].max() <= 1 and batch["image"].max() > 0.2
-    assert batch["pose"].shape == (n, 4, 4) and batch["K"].shape == (n, 3, 3)
-    torch.testing.assert_close(batch["pose"][:, :3, :3], batch["rotation"])
+    assert batch["camera_pose"].shape == (n, 4, 4) and batch["K"].shape == (n, 3, 3)
+    torch.testing.assert_close(batch["camera_pose"][:, :3, :3], batch["rotation"])
     torch.testing.assert_close(
-        batch["pose"][:, :3, 3] - torch.tensor([0, 0, SCENE_DISTANCE]), batch["translation"]
+        batch["camera_pose"][:, :3, 3] - torch.tensor([0, 0, SCENE_DISTANCE]), batch["translation"]
     )
-    assert batch["shape_id"].dtype == torch.int64 and set(batch["shape_id"].tolist()) <= set(
-        SHAPE_IDS.values()
-    )
+    if batch["pose"].shape[-1] == 4:
+        torch.testing.assert_close(batch["pose"][:, :3, :3], batch["rotation"])
+        torch.testing.assert_close(batch["pose"][:, :3, 3], batch["translation"])
+    else:
+        torch.testing.assert_close(batch["pose"], batch["rotation"])
+    assert batch["shape"].dtype == torch.int64 and set(batch["shape"].tolist()) <= set(SHAPE_IDS.values())
 
 
 def test_datamodule_streams_shards_and_renders_on_the_fly(tmp_path: Path) -> None:
@@ -415,7 +420,9 @@ def test_every_symsol_data_config_builds(name: str, tmp_path: Path) -> None:
     dm = instantiate(cfg.data)
     assert isinstance(dm, SymsolDataModule) and dm.variant == cfg.data.variant
     dm.setup("fit")
-    _check_batch(next(iter(dm.train_dataloader())), 5, 32)
+    batch = next(iter(dm.train_dataloader()))
+    _check_batch(batch, 5, 32)
+    assert batch["pose"].shape[-1] == dm.group.matrix_dim  # fit.yaml's group: so3 → R alone
     # shards mode without the folder: one line with the command that makes it
     cfg = _compose("fit", [f"data={name}", f"data.root={tmp_path / 'none'}"])
     with pytest.raises(

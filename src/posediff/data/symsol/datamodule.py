@@ -8,11 +8,14 @@ Two modes:
 * ``render`` (quick runs, no files): renders every sample on the fly from its seeded pose; each
   worker process creates its own renderer on first use.
 
-A sample (and, stacked, a batch) is a dict: ``image`` (3, H, W) float32 in [0, 1]; ``pose`` (4, 4)
-camera-frame [R | t]; ``rotation`` (3, 3); ``translation`` (3,) relative to the scene centre
-(t − (0, 0, SCENE_DISTANCE), in [−1, 1]³ for SYMSOL-T) — the diffusion target; ``shape_id`` int64
-(look up the equivalent poses with :func:`~posediff.data.symsol.equivalent_poses`); ``K`` (3, 3);
-``index``; and with ``with_depth=True`` also ``mask`` (H, W) bool and ``depth`` (H, W) float32.
+A sample (and, stacked, a batch) is a dict with the same keys as the toy's, so the training and
+evaluation code serve both: ``image`` (3, H, W) float32 in [0, 1]; ``pose`` the diffusion target —
+``R`` (3, 3) for a rotation group, else ``[R | t − c]`` (4, 4) with the translation from the scene
+centre c = (0, 0, SCENE_DISTANCE) (in [−1, 1]³ for SYMSOL-T); ``rotation`` (3, 3); ``translation``
+(3,) from the scene centre; ``shape`` int64, the index in ``SHAPES`` (look up the equivalent poses
+with :func:`~posediff.data.symsol.equivalent_poses`); ``camera_pose`` (4, 4) the camera-frame
+[R | t]; ``K`` (3, 3); ``index``; with ``with_depth=True`` also ``mask`` (H, W) bool and
+``depth`` (H, W) float32.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_info
 
+from ...lie import LieGroup, get_group
 from ...symmetry import SHAPES
 from .poses import check_spec, sample_poses
 from .render import SCENE_DISTANCE, SymsolRenderer, intrinsics
@@ -43,15 +47,21 @@ def to_sample(
     index: int,
     mask: np.ndarray | None = None,
     depth: np.ndarray | None = None,
+    *,
+    rotation_only: bool = False,
 ) -> dict[str, Any]:
-    pose = np.eye(4, dtype=np.float32)
-    pose[:3, :3], pose[:3, 3] = R, t
+    """One sample as tensors (module docstring); ``rotation_only``: ``pose`` is ``R`` (3, 3)."""
+    camera = np.eye(4, dtype=np.float32)
+    camera[:3, :3], camera[:3, 3] = R, t
+    target = camera.copy()
+    target[:3, 3] = t - _CENTRE
     out = {
         "image": torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))).float().div_(255.0),
-        "pose": torch.from_numpy(pose),
+        "pose": torch.from_numpy(np.ascontiguousarray(target[:3, :3]) if rotation_only else target),
         "rotation": torch.from_numpy(np.asarray(R, dtype=np.float32)),
         "translation": torch.from_numpy(np.asarray(t - _CENTRE, dtype=np.float32)),
-        "shape_id": torch.tensor(shape_id, dtype=torch.int64),
+        "shape": torch.tensor(shape_id, dtype=torch.int64),
+        "camera_pose": torch.from_numpy(camera),
         "K": torch.from_numpy(np.asarray(K, dtype=np.float32)),
         "index": torch.tensor(index, dtype=torch.int64),
     }
@@ -74,8 +84,10 @@ class SymsolRenderDataset(Dataset):
         seed: int = 0,
         shapes: Sequence[str] = SHAPES,
         with_depth: bool = False,
+        rotation_only: bool = False,
     ) -> None:
         self.variant = check_spec(dataset, variant, split)
+        self.rotation_only = rotation_only
         self.poses = sample_poses(dataset, self.variant, split, n_per_shape, seed, shapes)
         self.image_size = int(image_size)
         self.K = intrinsics(self.image_size)
@@ -91,7 +103,16 @@ class SymsolRenderDataset(Dataset):
         p = self.poses
         out = self._renderer.render(int(p.shape_id[i]), p.R[i], p.t[i])
         extra = (out.mask, out.depth) if self.with_depth else (None, None)
-        return to_sample(out.rgb, p.R[i], p.t[i], int(p.shape_id[i]), self.K, int(i), *extra)
+        return to_sample(
+            out.rgb,
+            p.R[i],
+            p.t[i],
+            int(p.shape_id[i]),
+            self.K,
+            int(i),
+            *extra,
+            rotation_only=self.rotation_only,
+        )
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
@@ -104,9 +125,16 @@ class SymsolShardDataset(IterableDataset):
     (seeded by ``seed`` and :meth:`set_epoch`); shards are split across DDP ranks, then workers."""
 
     def __init__(
-        self, shards: SymsolShards, *, shuffle: bool = True, seed: int = 0, with_depth: bool = False
+        self,
+        shards: SymsolShards,
+        *,
+        shuffle: bool = True,
+        seed: int = 0,
+        with_depth: bool = False,
+        rotation_only: bool = False,
     ) -> None:
         self.shards = shards
+        self.rotation_only = rotation_only
         self.shuffle = shuffle
         self.seed = seed
         self.with_depth = with_depth
@@ -149,13 +177,21 @@ class SymsolShardDataset(IterableDataset):
                 i = int(z["index"][j])
                 extra = (z["mask"][j], z["depth"][j]) if self.with_depth else (None, None)
                 yield to_sample(
-                    z["rgb"][j], index["R"][i], index["t"][i], int(index["shape_id"][i]), K, i, *extra
+                    z["rgb"][j],
+                    index["R"][i],
+                    index["t"][i],
+                    int(index["shape_id"][i]),
+                    K,
+                    i,
+                    *extra,
+                    rotation_only=self.rotation_only,
                 )
 
 
 class SymsolDataModule(L.LightningDataModule):
     """SYMSOL / SYMSOL-T train and test loaders (``conf/data/symsol*.yaml``).
 
+    ``group`` (``so3`` / ``r3so3`` / ``se3``, a name or a group) sets the shape of ``pose``.
     ``mode="shards"`` reads ``<root>/train`` and ``<root>/test`` (made by ``posediff data render``;
     a missing folder → one line with the command that makes it); ``mode="render"`` renders
     ``n_per_shape_train`` / ``n_per_shape_test`` samples per shape on the fly at ``image_size``.
@@ -176,8 +212,15 @@ class SymsolDataModule(L.LightningDataModule):
         batch_size: int = 16,
         num_workers: int = 0,
         with_depth: bool = False,
+        group: LieGroup | str = "se3",
     ) -> None:
         super().__init__()
+        self.group = get_group(group) if isinstance(group, str) else group
+        if self.group.name not in ("so3", "se3", "r3so3"):
+            raise ValueError(
+                f"SYMSOL poses need a 3-D rotation group (so3, se3, r3so3), not {self.group.name!r}"
+            )
+        self.rotation_only = self.group.matrix_dim == 3
         if mode not in ("shards", "render"):
             raise ValueError(f"unknown data mode {mode!r}; available: shards, render")
         self.variant = check_spec(dataset, variant, "train")
@@ -203,6 +246,7 @@ class SymsolDataModule(L.LightningDataModule):
                 self.seed,
                 self.shapes,
                 self.with_depth,
+                self.rotation_only,
             )
         shards = SymsolShards(Path(str(self.root)), dataset=self.dataset, variant=self.variant, split=split)
         m = shards.meta
@@ -220,7 +264,11 @@ class SymsolDataModule(L.LightningDataModule):
                 f"(set data.image_size={m['image_size']} or render again)"
             )
         return SymsolShardDataset(
-            shards, shuffle=split == "train", seed=self.seed, with_depth=self.with_depth
+            shards,
+            shuffle=split == "train",
+            seed=self.seed,
+            with_depth=self.with_depth,
+            rotation_only=self.rotation_only,
         )
 
     def setup(self, stage: str | None = None) -> None:
