@@ -168,7 +168,7 @@ class SymsolShardDataset(IterableDataset):
         K = self.shards.K
         index = self.shards.index
         for k in self._my_shards():
-            z = self.shards.load_shard(k)
+            z = self.shards.load_shard(k, depth=self.with_depth)
             n = len(z["index"])
             order = (
                 np.random.default_rng([self.seed, self.epoch, k]).permutation(n) if self.shuffle else range(n)

@@ -47,13 +47,11 @@ _GL_READY = False
 
 
 def prepare_gl() -> None:
-    """Make the process safe for an offscreen GL context (idempotent): the environment defaults
-    above and ``import triton`` before any context exists (module docstring)."""
+    """Make the process safe for an offscreen GL context (idempotent): ``import triton`` before any
+    context exists (the environment defaults are set when this module is imported)."""
     global _GL_READY
     if _GL_READY:
         return
-    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-    os.environ.setdefault("LP_NUM_THREADS", "0")
     logging.getLogger("OpenGL").setLevel(logging.WARNING)  # "No OpenGL_accelerate module loaded"
     try:  # noqa: SIM105 — importing it later, after a GL context exists, segfaults
         import triton  # noqa: F401

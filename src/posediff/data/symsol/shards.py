@@ -31,7 +31,7 @@ import numpy as np
 
 from ..._io import atomic_write_json
 from ...symmetry import SHAPES
-from .poses import check_spec, sample_poses
+from .poses import check_spec, default_variant, sample_poses
 from .render import FOV_DEG, SCENE_DISTANCE, SymsolRenderer, intrinsics
 
 FORMAT = "posediff-symsol/1"
@@ -45,6 +45,11 @@ def render_command(dataset: str, variant: str, split: str, root: Path | str, n_p
         f"posediff data render dataset={dataset} variant={variant} split={split} "
         f"n_per_shape={n_per_shape} out={root}"
     )
+
+
+def shard_path(split_dir: Path, k: int) -> Path:
+    """Where shard ``k`` of a split lives."""
+    return split_dir / f"shard-{k:05d}.npz"
 
 
 def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
@@ -110,8 +115,8 @@ class RenderSummary:
         )
 
 
-def _render_shard(args: tuple[Path, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]) -> int:
-    path, image_size, idx, shape_id, R, t, _ = args
+def _render_shard(args: tuple[Path, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> int:
+    path, image_size, idx, shape_id, R, t = args
     renderer = _worker_renderer(image_size)
     n = len(idx)
     rgb = np.empty((n, image_size, image_size, 3), np.uint8)
@@ -199,12 +204,12 @@ def render_dataset(
     )
     todo = []
     for k in range(num_shards):
-        path = root / f"shard-{k:05d}.npz"
+        path = shard_path(root, k)
         if path.exists():
             continue
         sl = slice(k * shard_size, min(n, (k + 1) * shard_size))
         idx = np.arange(n)[sl]
-        todo.append((path, image_size, idx, poses.shape_id[sl], poses.R[sl], poses.t[sl], k))
+        todo.append((path, image_size, idx, poses.shape_id[sl], poses.R[sl], poses.t[sl]))
     rendered = sum(len(a[2]) for a in todo)
     t0 = time.perf_counter()
     from tqdm.auto import tqdm
@@ -253,7 +258,7 @@ class SymsolShards:
         if not meta_path.exists():
             want_split = split or "train"
             root = path.parent if path.name == want_split else path
-            variant = variant or ("centered" if dataset == "symsol" else "uniform")
+            variant = variant or default_variant(dataset)
             raise FileNotFoundError(
                 f"no rendered {dataset} {want_split} split at {root / want_split}; make it with: "
                 + render_command(dataset, variant, want_split, root)
@@ -286,24 +291,27 @@ class SymsolShards:
         return int(self.meta["image_size"])
 
     def shard_path(self, k: int) -> Path:
-        return self.path / f"shard-{k:05d}.npz"
+        return shard_path(self.path, k)
 
-    def load_shard(self, k: int) -> dict[str, np.ndarray]:
-        """Shard ``k`` as arrays: ``rgb``, ``depth`` (float32, scene units), ``mask``, ``index``."""
+    def load_shard(self, k: int, *, depth: bool = True) -> dict[str, np.ndarray]:
+        """Shard ``k`` as arrays: ``rgb``, ``index`` and, with ``depth`` (skip it to read and
+        inflate half as much), ``depth`` (float32, scene units) and ``mask``."""
         path = self.shard_path(k)
         if not path.exists():
             raise FileNotFoundError(
                 f"missing shard {path} (the split's meta.json says it is complete; render it again)"
             )
-        z = read_npz(path, ("rgb", "depth", "index"))
+        z = read_npz(path, ("rgb", "depth", "index") if depth else ("rgb", "index"))
         n = len(z["index"])
         s = self.image_size
-        if z["rgb"].shape != (n, s, s, 3) or z["depth"].shape != (n, s, s):
-            raise RuntimeError(
-                f"corrupt shard {path}: rgb {z['rgb'].shape}, depth {z['depth'].shape}, expected ({n}, {s}, {s}[, 3])"
-            )
-        depth = z["depth"].astype(np.float32) * float(self.meta["depth_scale"])
-        return {"rgb": z["rgb"], "depth": depth, "mask": z["depth"] > 0, "index": z["index"]}
+        if z["rgb"].shape != (n, s, s, 3) or (depth and z["depth"].shape != (n, s, s)):
+            shapes = f"rgb {z['rgb'].shape}" + (f", depth {z['depth'].shape}" if depth else "")
+            raise RuntimeError(f"corrupt shard {path}: {shapes}, expected ({n}, {s}, {s}[, 3])")
+        out = {"rgb": z["rgb"], "index": z["index"]}
+        if depth:
+            out["depth"] = z["depth"].astype(np.float32) * float(self.meta["depth_scale"])
+            out["mask"] = z["depth"] > 0
+        return out
 
     def iter_samples(self, shards: Sequence[int] | None = None) -> Iterator[dict[str, Any]]:
         """Every sample of the given shards (all by default) in file order."""
@@ -330,5 +338,6 @@ __all__ = [
     "read_npz",
     "render_command",
     "render_dataset",
+    "shard_path",
     "write_npz",
 ]
