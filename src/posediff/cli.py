@@ -23,6 +23,14 @@ COMMANDS: dict[str, Command] = {
     "groups": Command("list the registered Lie groups and their tensor layouts", None),
     "check": Command("run the Lie group contract on a group from config: posediff check group=so3", "check"),
     "fit": Command("train a score model and evaluate it: posediff fit +experiment=toy_so3", "fit"),
+    "eval": Command(
+        "evaluate a checkpoint: posediff eval ckpt_path=CKPT [-m sampler.num_steps=5,10,50,100]", "eval"
+    ),
+    "predict": Command(
+        "pose hypotheses, modes and plots for one image: posediff predict ckpt_path=CKPT image=IMG.png",
+        "predict",
+    ),
+    "report": Command("one table from an eval multirun: posediff report dir=multirun/eval/<stamp>", "report"),
     "data": Command("make datasets: posediff data render|grid [key=value ...]", None),
 }
 
@@ -95,6 +103,9 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
     task: Callable[[DictConfig], int] = {
         "check": tasks.check_group,
         "fit": tasks.fit,
+        "eval": tasks.evaluate_checkpoint,
+        "predict": tasks.predict,
+        "report": tasks.report,
         "data render": tasks.render_data,
         "data grid": tasks.render_grid,
     }[name]
@@ -111,6 +122,10 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
     def _main(cfg: DictConfig) -> None:
         result["code"] = task(cfg)
 
+    # argparse cannot take overrides on both sides of a flag: `posediff eval a=1 -m b=1,2` is
+    # documented usage, so Hydra's -m/--multirun goes first
+    flags = [a for a in args if a in ("-m", "--multirun")]
+    args = flags + [a for a in args if a not in flags]
     argv = sys.argv
     sys.argv = [f"posediff {name}", *args]
     try:

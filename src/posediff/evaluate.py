@@ -7,6 +7,8 @@ the toy benchmark collects). It reports, per shape and overall:
   equivalent ground-truth rotations (degrees);
 * ``translation_error`` — mean distance of the sampled translations to the ground truth
   (groups with a translation);
+* ``recall_rot@2/5/10`` — fraction of hypotheses within 2/5/10° of an equivalent rotation;
+* ``recall_trans@0.02/0.05/0.1`` — fraction of hypotheses within that distance of the translation;
 * ``coverage`` — fraction of the discrete equivalent poses with a sample within 5° (polyhedra);
 * ``seconds_per_input`` — wall time of the sampler per test input (N hypotheses each).
 
@@ -22,8 +24,13 @@ import torch
 from torch.utils.data import DataLoader
 
 from .diffusion import Sampler
-from .metrics import mode_coverage, rotation_spread_deg, translation_error
+from .metrics import mode_coverage, recall
 from .module import PoseDiffusionModule
+from .symmetry import min_angle_to_equivalents
+
+#: recall thresholds (paper's SYMSOL-T evaluation: degrees, and scene units)
+ROTATION_THRESHOLDS_DEG = (2.0, 5.0, 10.0)
+TRANSLATION_THRESHOLDS = (0.02, 0.05, 0.1)
 
 
 @torch.no_grad()
@@ -37,13 +44,27 @@ def evaluate(
     sampler: Sampler | None = None,
     seed: int = 0,
     coverage_threshold_deg: float = 5.0,
+    rotation_thresholds_deg: Sequence[float] = ROTATION_THRESHOLDS_DEG,
+    translation_thresholds: Sequence[float] = TRANSLATION_THRESHOLDS,
+    max_inputs: int | None = None,
 ) -> dict[str, Any]:
-    """Per-shape and overall metrics of ``num_samples`` hypotheses per test input."""
+    """Per-shape and overall metrics of ``num_samples`` hypotheses per test input (at most
+    ``max_inputs`` inputs)."""
     was_training = module.training
     module.eval()
     try:
         return _evaluate(
-            module, loader, shapes, num_samples, num_steps, sampler, seed, coverage_threshold_deg
+            module,
+            loader,
+            shapes,
+            num_samples,
+            num_steps,
+            sampler,
+            seed,
+            coverage_threshold_deg,
+            tuple(rotation_thresholds_deg),
+            tuple(translation_thresholds),
+            max_inputs,
         )
     finally:
         module.train(was_training)
@@ -58,6 +79,9 @@ def _evaluate(
     sampler: Sampler | None,
     seed: int,
     coverage_threshold_deg: float,
+    rotation_thresholds_deg: Sequence[float],
+    translation_thresholds: Sequence[float],
+    max_inputs: int | None,
 ) -> dict[str, Any]:
     gen = torch.Generator(device=module.device).manual_seed(int(seed))
     per_shape: dict[str, dict[str, list[torch.Tensor]]] = {}
@@ -65,41 +89,61 @@ def _evaluate(
     seconds = 0.0
     count = 0
     for batch in loader:
-        batch = {k: v.to(module.device) for k, v in batch.items()}
+        if max_inputs is not None and count >= max_inputs:
+            break
+        batch = {k: v.to(module.device) for k, v in batch.items() if isinstance(v, torch.Tensor)}
+        if max_inputs is not None and count + int(batch["pose"].shape[0]) > max_inputs:
+            batch = {k: v[: max_inputs - count] for k, v in batch.items()}
         start = time.perf_counter()
         x = module.sample(batch[module.cond_key], num_samples, num_steps, sampler=sampler, generator=gen)
+        if x.is_cuda:
+            torch.cuda.synchronize(x.device)
         seconds += time.perf_counter() - start
         count += int(batch["pose"].shape[0])
         rot = x[..., :3, :3].double()
         for k in batch["shape"].unique().tolist():
             shape = shapes[k]
             sel = batch["shape"] == k
-            acc = per_shape.setdefault(shape, {"spread_deg": [], "translation_error": [], "coverage": []})
+            acc = per_shape.setdefault(shape, {"rot": [], "trans": [], "coverage": []})
             r_gt = batch["rotation"][sel].double()
-            acc["spread_deg"].append(rotation_spread_deg(shape, rot[sel], r_gt))
-            acc["coverage"].append(mode_coverage(shape, rot[sel], r_gt, coverage_threshold_deg))
+            acc["rot"].append(torch.rad2deg(min_angle_to_equivalents(shape, rot[sel], r_gt)).cpu())
+            acc["coverage"].append(mode_coverage(shape, rot[sel], r_gt, coverage_threshold_deg).cpu())
             if has_t:
-                acc["translation_error"].append(
-                    translation_error(x[sel][..., :3, 3].double(), batch["translation"][sel].double())
-                )
+                t_s, t_gt = x[sel][..., :3, 3].double(), batch["translation"][sel].double()
+                acc["trans"].append((t_s - t_gt.unsqueeze(-2)).norm(dim=-1).cpu())
     result: dict[str, Any] = {"shapes": {}}
     for shape, acc in per_shape.items():
-        row = {}
-        for key, values in acc.items():
-            if values:
-                v = torch.cat(values)
-                row[key] = float(v.nanmean()) if not bool(v.isnan().all()) else math.nan
+        rot_err = torch.cat(acc["rot"])  # (inputs, N) degrees
+        cov = torch.cat(acc["coverage"])
+        row: dict[str, float] = {"inputs": float(rot_err.shape[0]), "spread_deg": float(rot_err.mean())}
+        for thr, r in zip(
+            rotation_thresholds_deg, recall(rot_err, rotation_thresholds_deg).tolist(), strict=True
+        ):
+            row[f"recall_rot@{_fmt_thr(thr)}"] = r
+        if acc["trans"]:
+            t_err = torch.cat(acc["trans"])
+            row["translation_error"] = float(t_err.mean())
+            for thr, r in zip(
+                translation_thresholds, recall(t_err, translation_thresholds).tolist(), strict=True
+            ):
+                row[f"recall_trans@{_fmt_thr(thr)}"] = r
+        row["coverage"] = float(cov.nanmean()) if not bool(cov.isnan().all()) else math.nan
         result["shapes"][shape] = row
-    keys = ("spread_deg", "translation_error", "coverage")
-    result["overall"] = {
-        k: _nanmean([row[k] for row in result["shapes"].values() if k in row])
-        for k in keys
-        if any(k in row for row in result["shapes"].values())
-    }
+    keys = [k for row in result["shapes"].values() for k in row if k != "inputs"]
+    keys = list(dict.fromkeys(keys))
+    result["overall"] = {k: _nanmean([row[k] for row in result["shapes"].values() if k in row]) for k in keys}
     result["seconds_per_input"] = seconds / max(count, 1)
+    result["inputs"] = count
     result["num_samples"] = int(num_samples)
-    result["num_steps"] = num_steps
+    s = sampler or module.sampler
+    result["num_steps"] = num_steps if num_steps is not None else s.num_steps
+    result["sampler"] = getattr(s, "name", type(s).__name__)
     return result
+
+
+def _fmt_thr(x: float) -> str:
+    """``2.0 → "2"``, ``0.05 → "0.05"`` (metric names)."""
+    return f"{x:g}"
 
 
 def _nanmean(values: list[float]) -> float:

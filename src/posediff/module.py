@@ -123,6 +123,16 @@ class PoseDiffusionModule(L.LightningModule):
         self.loss_history.append(float(loss.detach()))
         return loss
 
+    @torch.no_grad()
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        """The training objective on held-out inputs (``val/loss``: what "best" checkpoints track)."""
+        feature = self.encode(batch[self.cond_key])
+        gen = torch.Generator(device=feature.device).manual_seed(1000 + batch_idx)
+        noisy = self.diffusion.perturb(batch["pose"], num_noisy=self.num_noisy, generator=gen)
+        loss = self.diffusion.loss(self(noisy.x_noisy, noisy.sigma, feature), noisy)
+        self.log("val/loss", loss, prog_bar=True, batch_size=batch["pose"].shape[0])
+        return loss
+
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         if self.config is not None:
             checkpoint["posediff_config"] = self.config

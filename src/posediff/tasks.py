@@ -100,7 +100,28 @@ def fit(cfg: DictConfig) -> int:
     if not isinstance(module, PoseDiffusionModule):
         raise TypeError(f"module config builds {type(module).__name__}, not a PoseDiffusionModule")
     module.config = OmegaConf.to_container(cfg, resolve=True)
-    trainer = instantiate(cfg.trainer)
+    if cfg.ckpt_path is not None:
+        from .checkpoint import CheckpointError, check_compatible, read_checkpoint
+
+        try:
+            stored = read_checkpoint(cfg.ckpt_path)["posediff_config"]
+            check_compatible(
+                stored,
+                group=module.group.name,
+                shapes=list(getattr(datamodule, "shapes", [])) or None,
+                where=f"checkpoint {cfg.ckpt_path}",
+            )
+        except CheckpointError as e:
+            print(f"posediff fit: cannot resume: {e}", file=sys.stderr)
+            return 2
+    callbacks = list(instantiate(cfg.trainer.get("callbacks")) or [])
+    if not cfg.trainer.get("enable_progress_bar", True):  # Lightning refuses a bar callback then
+        from lightning.pytorch.callbacks import ProgressBar
+
+        callbacks = [c for c in callbacks if not isinstance(c, ProgressBar)]
+    if cfg.get("ema") is not None:
+        callbacks.append(instantiate(cfg.ema))
+    trainer = instantiate(cfg.trainer, callbacks=callbacks)
     datamodule.setup("fit")
     shapes = list(getattr(datamodule, "shapes", []))
     results: dict[str, Any] = {"experiment": _experiment_name(), "diffusion": module.diffusion.describe()}
@@ -231,3 +252,198 @@ def render_grid(cfg: DictConfig) -> int:
         return 2
     print(f"figure: {path}")
     return 0
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(name)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device={name} but no CUDA device is available (use device=cpu or auto)")
+    return dev
+
+
+def _checkpoint_run(cfg: DictConfig) -> tuple[Any, DictConfig]:
+    """The module of ``cfg.ckpt_path`` and its run config with the command's ``group`` / ``data`` /
+    ``sampler`` choices applied (a data mapping without ``_target_`` overrides single keys)."""
+    from .checkpoint import check_compatible, load_checkpoint, read_checkpoint
+
+    config = read_checkpoint(cfg.ckpt_path)["posediff_config"]
+    run = OmegaConf.create(config)
+    data = cfg.get("data")
+    if data:
+        d = OmegaConf.to_container(data, resolve=False)
+        run.data = d if "_target_" in d else OmegaConf.merge(run.data, d)
+    group = None
+    if cfg.get("group") is not None:
+        from hydra.utils import get_class
+
+        group = str(get_class(cfg.group._target_).name)
+    shapes = list(run.data.shapes) if "shapes" in run.data else None
+    check_compatible(config, group=group, shapes=shapes, where=f"checkpoint {cfg.ckpt_path}")
+    module = load_checkpoint(cfg.ckpt_path, map_location="cpu")
+    sampler = cfg.get("sampler")
+    if sampler:
+        s = OmegaConf.to_container(sampler, resolve=True)
+        run.module.sampler = s if "_target_" in s else OmegaConf.merge(run.module.sampler, s)
+    if run.module.sampler.get("num_steps") is not None and int(run.module.sampler.num_steps) < 1:
+        raise ValueError(f"sampler.num_steps must be ≥ 1, got {run.module.sampler.num_steps}")
+    module.sampler = instantiate(run.module.sampler)(module.diffusion)
+    return module, run
+
+
+def _data(run: DictConfig) -> Any:
+    """The test data of a run config (``data.*`` as stored, with any overrides applied)."""
+    datamodule = instantiate(run.data)
+    datamodule.setup("test")
+    return datamodule
+
+
+def evaluate_checkpoint(cfg: DictConfig) -> int:
+    """``posediff eval``: metrics of a checkpoint on its (or another) test set; ``metrics.json`` and
+    ``metrics.md`` in the run folder. Step counts are a sampler option (``sampler.num_steps``)."""
+    from ._io import atomic_write_json, atomic_write_text
+    from .checkpoint import CheckpointError
+    from .evaluate import evaluate
+    from .report import run_table
+
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        if int(cfg.num_samples) < 1:
+            raise ValueError(f"num_samples must be ≥ 1, got {cfg.num_samples}")
+        device = _device(str(cfg.device))
+        module, run = _checkpoint_run(cfg)
+        datamodule = _data(run)
+    except (CheckpointError, ValueError, FileNotFoundError, RuntimeError) as e:
+        print(f"posediff eval: {e}", file=sys.stderr)
+        return 2
+    module.to(device)
+    shapes = list(getattr(datamodule, "shapes", []))
+    result = evaluate(
+        module,
+        datamodule.test_dataloader(),
+        shapes,
+        num_samples=int(cfg.num_samples),
+        num_steps=None,
+        seed=int(cfg.seed),
+        max_inputs=cfg.max_inputs,
+    )
+    result.update(
+        ckpt_path=str(cfg.ckpt_path),
+        device=str(device),
+        data=OmegaConf.to_container(run.data, resolve=True),
+        sampler_config=OmegaConf.to_container(run.module.sampler, resolve=True),
+    )
+    atomic_write_json(out_dir / "metrics.json", result)
+    table = run_table(result)
+    atomic_write_text(out_dir / "metrics.md", table)
+    print(table)
+    print(f"metrics: {out_dir / 'metrics.json'}")
+    return 0
+
+
+def report(cfg: DictConfig) -> int:
+    """``posediff report dir=<multirun folder>``: the jobs' metrics in one table (Table 4 layout)."""
+    from .report import collect_sweep
+
+    try:
+        _, table = collect_sweep(str(cfg.dir))
+    except FileNotFoundError as e:
+        print(f"posediff report: {e}", file=sys.stderr)
+        return 2
+    print(table)
+    print(f"report: {Path(str(cfg.dir)) / 'report.md'}")
+    return 0
+
+
+def predict(cfg: DictConfig) -> int:
+    """``posediff predict``: hypotheses, modes, ``poses.npz`` / ``poses.json`` and the plots for one image."""
+    from .checkpoint import CheckpointError
+    from .predict import load_image, predict, save_prediction
+
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        if (cfg.image is None) == (cfg.index is None):
+            raise ValueError("give exactly one of image=PATH (an image file) or index=N (a test sample)")
+        if int(cfg.num_samples) < 1:
+            raise ValueError(f"num_samples must be ≥ 1, got {cfg.num_samples}")
+        device = _device(str(cfg.device))
+        module, run = _checkpoint_run(cfg)
+        size = int(run.data.get("image_size", 0) or 0)
+        if module.cond_key != "image" or not size:
+            raise ValueError(
+                f"checkpoint {cfg.ckpt_path} was not trained on images (condition {module.cond_key!r})"
+            )
+        shape, gt_pose = cfg.shape, None
+        if cfg.index is not None:
+            sample = _test_sample(run, int(cfg.index))
+            image, gt_pose = sample["image"], sample["pose"]
+            shape = list(run.data.shapes)[int(sample["shape"])]
+        else:
+            image = load_image(str(cfg.image), size)
+        if shape is not None:
+            from .data.symsol import shape_name
+
+            shape = shape_name(shape)
+    except (CheckpointError, ValueError, FileNotFoundError, IndexError, KeyError) as e:
+        print(f"posediff predict: {e}", file=sys.stderr)
+        return 2
+    module.to(device)
+    pred = predict(
+        module,
+        image,
+        num_samples=int(cfg.num_samples),
+        trajectory=bool(cfg.trajectory),
+        seed=int(cfg.seed),
+        mode_radius_deg=float(cfg.mode_radius_deg),
+        min_mode_weight=float(cfg.min_mode_weight),
+    )
+    K, offset = _camera(run)
+    files = save_prediction(
+        pred,
+        out_dir,
+        image=image,
+        K=K,
+        camera_offset=offset,
+        shape=shape,
+        gt_pose=gt_pose,
+        top_modes=int(cfg.top_modes),
+        info={
+            "ckpt_path": str(cfg.ckpt_path),
+            "image": None if cfg.image is None else str(cfg.image),
+            "index": cfg.index,
+            "shape": shape,
+            "group": module.group.name,
+            "sampler": OmegaConf.to_container(run.module.sampler, resolve=True),
+        },
+    )
+    print(f"{pred.modes.summary()} from {pred.samples.shape[0]} hypotheses in {pred.seconds:.2f} s")
+    for k in range(min(len(pred.modes), int(cfg.top_modes))):
+        print(f"  mode {k}: weight {float(pred.modes.weights[k]):.3f}")
+    for name, path in files.items():
+        print(f"{name}: {path}")
+    return 0
+
+
+def _test_sample(run: DictConfig, index: int) -> dict[str, Any]:
+    """Sample ``index`` of a run's test data (in loader order)."""
+    datamodule = _data(run)
+    n = 0
+    for batch in datamodule.test_dataloader():
+        b = int(batch["pose"].shape[0])
+        if index < n + b:
+            return {k: v[index - n] for k, v in batch.items()}
+        n += b
+    raise IndexError(f"index={index} but the test data has {n} samples")
+
+
+def _camera(run: DictConfig) -> tuple[Any, Any]:
+    """``K`` and the pose → camera translation offset of a SYMSOL run (``(None, None)`` otherwise)."""
+    target = str(run.data.get("_target_", ""))
+    if not target.startswith("posediff.data.symsol"):
+        return None, None
+    import numpy as np
+
+    from .data.symsol.render import SCENE_DISTANCE, intrinsics
+
+    return intrinsics(int(run.data.image_size)), np.array([0.0, 0.0, SCENE_DISTANCE])

@@ -122,7 +122,8 @@ class SymsolRenderDataset(Dataset):
 
 class SymsolShardDataset(IterableDataset):
     """Streams a rendered split. ``shuffle``: shard order and in-shard order change every epoch
-    (seeded by ``seed`` and :meth:`set_epoch`); shards are split across DDP ranks, then workers."""
+    (seeded by ``seed`` and :meth:`set_epoch`); shards are split across DDP ranks, then workers.
+    ``limit_per_shape``: only the first that many samples of each shape (in index order)."""
 
     def __init__(
         self,
@@ -132,9 +133,18 @@ class SymsolShardDataset(IterableDataset):
         seed: int = 0,
         with_depth: bool = False,
         rotation_only: bool = False,
+        limit_per_shape: int | None = None,
     ) -> None:
         self.shards = shards
         self.rotation_only = rotation_only
+        self.keep: np.ndarray | None = None
+        if limit_per_shape is not None:
+            sid = np.asarray(shards.index["shape_id"])
+            rank = np.zeros(len(sid), dtype=np.int64)
+            for k in np.unique(sid):
+                sel = np.flatnonzero(sid == k)
+                rank[sel] = np.arange(len(sel))
+            self.keep = rank < int(limit_per_shape)
         self.shuffle = shuffle
         self.seed = seed
         self.with_depth = with_depth
@@ -151,6 +161,8 @@ class SymsolShardDataset(IterableDataset):
 
     def _my_shards(self) -> list[int]:
         order = np.arange(self.shards.num_shards)
+        if self.keep is not None:
+            order = np.unique(np.asarray(self.shards.index["shard"])[self.keep])
         if self.shuffle:
             order = np.random.default_rng([self.seed, self.epoch]).permutation(order)
         rank, world = self._rank_world()
@@ -162,7 +174,8 @@ class SymsolShardDataset(IterableDataset):
 
     def __len__(self) -> int:
         _, world = self._rank_world()
-        return len(self.shards) // world
+        n = len(self.shards) if self.keep is None else int(self.keep.sum())
+        return n // world
 
     def __iter__(self) -> Iterator[dict[str, Any]]:
         K = self.shards.K
@@ -175,6 +188,8 @@ class SymsolShardDataset(IterableDataset):
             )
             for j in order:
                 i = int(z["index"][j])
+                if self.keep is not None and not self.keep[i]:
+                    continue
                 extra = (z["mask"][j], z["depth"][j]) if self.with_depth else (None, None)
                 yield to_sample(
                     z["rgb"][j],
@@ -195,6 +210,8 @@ class SymsolDataModule(L.LightningDataModule):
     ``mode="shards"`` reads ``<root>/train`` and ``<root>/test`` (made by ``posediff data render``;
     a missing folder → one line with the command that makes it); ``mode="render"`` renders
     ``n_per_shape_train`` / ``n_per_shape_test`` samples per shape on the fly at ``image_size``.
+    In ``shards`` mode ``n_per_shape_test`` keeps the first that many test samples per shape
+    (``None``: all).
     """
 
     def __init__(
@@ -206,7 +223,7 @@ class SymsolDataModule(L.LightningDataModule):
         root: str | None = None,
         image_size: int = 224,
         n_per_shape_train: int = 1000,
-        n_per_shape_test: int = 100,
+        n_per_shape_test: int | None = 100,
         shapes: Sequence[str] = SHAPES,
         seed: int = 0,
         batch_size: int = 16,
@@ -269,6 +286,7 @@ class SymsolDataModule(L.LightningDataModule):
             seed=self.seed,
             with_depth=self.with_depth,
             rotation_only=self.rotation_only,
+            limit_per_shape=None if split == "train" else self.n_per_shape[split],
         )
 
     def setup(self, stage: str | None = None) -> None:

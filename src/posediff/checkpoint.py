@@ -1,0 +1,123 @@
+"""Checkpoints: a trained model from one file, without the config files it was trained with.
+
+``posediff fit`` stores the resolved run configuration in every Lightning checkpoint (key
+``posediff_config``). :func:`load_checkpoint` reads the file with ``torch.load(weights_only=True)``
+(tensors and plain containers only — no pickled code runs), rebuilds the module from the stored
+config with Hydra's ``instantiate`` and loads the weights. With the authors' EMA on
+(``ema=authors``), Lightning's ``EMAWeightAveraging`` puts the averaged weights in ``state_dict``,
+so evaluation uses the EMA weights.
+
+A checkpoint is refused with one line when it was trained for another group or shape set than the
+caller asks for (:func:`check_compatible`).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+CONFIG_KEY = "posediff_config"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot serve the request (missing, not posediff's, or trained differently)."""
+
+
+def read_checkpoint(path: str | os.PathLike[str], map_location: Any = "cpu") -> dict[str, Any]:
+    """The checkpoint dict (``weights_only=True``); one-line errors for a missing or foreign file."""
+    p = Path(path)
+    if not p.is_file():
+        raise CheckpointError(f"checkpoint {p} not found (posediff fit writes them to <run>/checkpoints/)")
+    try:
+        ckpt = torch.load(p, map_location=map_location, weights_only=True)
+    except Exception as e:  # noqa: BLE001 - any unreadable file gets the same one-line message
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"cannot read checkpoint {p}: {first}") from e
+    if not isinstance(ckpt, dict) or CONFIG_KEY not in ckpt or "state_dict" not in ckpt:
+        raise CheckpointError(
+            f"{p} is not a posediff checkpoint (no stored run config; made by posediff fit?)"
+        )
+    return ckpt
+
+
+def checkpoint_group(config: dict[str, Any]) -> str:
+    """The group name a stored config trains on (from ``group._target_``)."""
+    from hydra.utils import get_class
+
+    return str(get_class(config["group"]["_target_"]).name)
+
+
+def checkpoint_shapes(config: dict[str, Any]) -> list[str]:
+    return [str(s) for s in (config.get("data") or {}).get("shapes", [])]
+
+
+def check_compatible(
+    config: dict[str, Any],
+    *,
+    group: str | None = None,
+    shapes: Sequence[str] | None = None,
+    where: str = "checkpoint",
+) -> None:
+    """Raise :class:`CheckpointError` when ``config`` was trained on another group or on fewer shapes."""
+    have = checkpoint_group(config)
+    if group is not None and group != have:
+        raise CheckpointError(
+            f"{where} was trained on group {have!r}, not {group!r}; use a {group} checkpoint or group={have}"
+        )
+    if shapes is not None:
+        trained = checkpoint_shapes(config)
+        missing = [s for s in shapes if s not in trained]
+        if missing:
+            raise CheckpointError(
+                f"{where} was trained on the shapes {trained}; it cannot evaluate {missing} "
+                f"(set data.shapes to a subset of {trained})"
+            )
+
+
+def load_checkpoint(
+    path: str | os.PathLike[str],
+    *,
+    map_location: Any = "cpu",
+    group: str | None = None,
+    shapes: Sequence[str] | None = None,
+):  # noqa: ANN201 - PoseDiffusionModule (imported lazily)
+    """The trained :class:`~posediff.module.PoseDiffusionModule` of a ``posediff fit`` checkpoint, in eval mode.
+
+    ``group`` / ``shapes``: refuse (one line) a checkpoint trained on another group or without
+    those shapes. ``module.config`` holds the stored run configuration.
+    """
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from .config import register_resolvers
+    from .module import PoseDiffusionModule
+
+    register_resolvers()
+    ckpt = read_checkpoint(path, map_location)
+    config = ckpt[CONFIG_KEY]
+    check_compatible(config, group=group, shapes=shapes, where=f"checkpoint {path}")
+    module_cfg = OmegaConf.create(config["module"])
+    if module_cfg.get("encoder") is not None and "weights" in module_cfg.encoder:
+        module_cfg.encoder.weights = None  # the checkpoint holds the trained weights; no file needed
+    module = instantiate(module_cfg)
+    if not isinstance(module, PoseDiffusionModule):
+        raise CheckpointError(f"{path}: its module config builds {type(module).__name__}")
+    module.load_state_dict(ckpt["state_dict"])
+    module.config = config
+    module.eval()
+    return module
+
+
+__all__ = [
+    "CONFIG_KEY",
+    "CheckpointError",
+    "check_compatible",
+    "checkpoint_group",
+    "checkpoint_shapes",
+    "load_checkpoint",
+    "read_checkpoint",
+]

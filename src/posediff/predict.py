@@ -1,0 +1,317 @@
+"""Pose hypotheses for one image, their modes, and the pictures (``posediff predict``).
+
+:func:`load_image` reads an image file (one-line errors for a missing file or a non-image),
+:func:`predict` samples ``N`` hypotheses (optionally the whole denoising trajectory) and clusters
+them into weighted modes (:func:`posediff.diffusion.modes`), and :func:`save_prediction` writes
+
+* ``poses.npz`` — ``samples (N, n, n)``, ``mode_poses (K, n, n)``, ``mode_weights (K,)``,
+  ``labels (N,)`` and, with a trajectory, ``trajectory (T+1, N, n, n)``;
+* ``poses.json`` — the modes (rotation, translation, weight) and the settings;
+* ``so3.png`` — the Mollweide SO(3) plot in the Implicit-PDF style (yaw/pitch position, roll
+  colour), samples as dots, modes as weighted discs, ground truth (every equivalent pose) as circles;
+* ``translations.png`` — x–y and x–z scatters of the sampled translations (groups with one);
+* ``overlay.png`` — the input with the top modes drawn over it: the object's wire-frame when the
+  shape is known, else coordinate axes (needs the camera ``K``);
+* ``trajectory.png`` — the samples at a few levels from the prior to the end (the paper's Fig. 1).
+
+All files are written atomically (temporary name, then rename).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ._io import atomic_write_text
+
+
+def load_image(path: str | os.PathLike[str], size: int) -> Tensor:
+    """An RGB image file as ``(3, size, size)`` float in [0, 1] (resized with bilinear filtering
+    when its side differs; a non-square image is an error)."""
+    from PIL import Image, UnidentifiedImageError
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"image {p} not found")
+    try:
+        with Image.open(p) as im:
+            im = im.convert("RGB")
+            if im.width != im.height:
+                raise ValueError(f"image {p} is {im.width}×{im.height}; give a square crop ({size}×{size})")
+            if im.width != size:
+                im = im.resize((size, size), Image.BILINEAR)
+            arr = np.asarray(im, dtype=np.float32) / 255.0
+    except UnidentifiedImageError as e:
+        raise ValueError(f"{p} is not an image PIL can read") from e
+    return torch.from_numpy(arr.transpose(2, 0, 1).copy())
+
+
+@dataclass
+class Prediction:
+    """What :func:`predict` returns for one input."""
+
+    samples: Tensor  # (N, n, n)
+    modes: Any  # posediff.diffusion.Modes
+    trajectory: Tensor | None = None  # (T+1, N, n, n)
+    seconds: float = 0.0
+
+
+@torch.no_grad()
+def predict(
+    module: Any,
+    cond: Tensor,
+    *,
+    num_samples: int = 1000,
+    trajectory: bool = False,
+    seed: int = 0,
+    mode_radius_deg: float = 10.0,
+    min_mode_weight: float = 0.01,
+) -> Prediction:
+    """``num_samples`` hypotheses for one input ``cond`` (no batch dimension) and their modes."""
+    import time
+
+    from .diffusion import modes
+
+    gen = torch.Generator(device=module.device).manual_seed(int(seed))
+    start = time.perf_counter()
+    out = module.sample(
+        cond.unsqueeze(0).to(module.device), int(num_samples), generator=gen, trajectory=trajectory
+    )
+    seconds = time.perf_counter() - start
+    x, path = out if trajectory else (out, None)
+    x = x[0].double().cpu()
+    m = modes(x, module.group, radius_deg=mode_radius_deg, min_weight=min_mode_weight)
+    return Prediction(
+        samples=x,
+        modes=m,
+        trajectory=None if path is None else path[:, 0].double().cpu(),
+        seconds=seconds,
+    )
+
+
+def _atomic_bytes(path: Path, data: bytes) -> Path:
+    import tempfile
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _save_fig(fig: Any, path: Path) -> Path:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    return _atomic_bytes(path, buf.getvalue())
+
+
+def _rt(poses: Tensor) -> tuple[np.ndarray, np.ndarray | None]:
+    P = poses.numpy()
+    return P[..., :3, :3], (P[..., :3, 3] if P.shape[-1] == 4 else None)
+
+
+def figure_so3(pred: Prediction, gt_rotations: np.ndarray | None = None, title: str = "") -> Any:
+    from matplotlib.figure import Figure
+
+    from .viz import plot_so3
+
+    fig = Figure(figsize=(9, 4.8))
+    ax = fig.add_subplot(1, 1, 1, projection="mollweide")
+    R, _ = _rt(pred.samples)
+    plot_so3(R, ax=ax, gt=gt_rotations, title=title or f"{len(R)} hypotheses")
+    if len(pred.modes):
+        Rm, _ = _rt(pred.modes.poses)
+        plot_so3(Rm, ax=ax, weights=pred.modes.weights.numpy(), marker_size=160, colorwheel=False)
+    return fig
+
+
+def figure_translations(pred: Prediction, gt_translation: np.ndarray | None = None) -> Any:
+    from matplotlib.figure import Figure
+
+    _, t = _rt(pred.samples)
+    fig = Figure(figsize=(9, 4.3))
+    for k, (i, j) in enumerate(((0, 1), (0, 2))):
+        ax = fig.add_subplot(1, 2, k + 1)
+        ax.scatter(t[:, i], t[:, j], s=4, alpha=0.5, label="hypotheses")
+        if gt_translation is not None:
+            ax.scatter(
+                [gt_translation[i]], [gt_translation[j]], marker="x", s=80, c="red", label="ground truth"
+            )
+        ax.set_xlabel("xyz"[i])
+        ax.set_ylabel("xyz"[j])
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(True, alpha=0.3)
+        if k == 0:
+            ax.legend(loc="best", fontsize=8)
+    fig.suptitle("sampled translations")
+    return fig
+
+
+def overlay(
+    image: Tensor,
+    poses: Tensor,
+    K: np.ndarray,
+    *,
+    camera_offset: np.ndarray | None = None,
+    shape: str | None = None,
+    scale: int = 4,
+) -> np.ndarray:
+    """The input ``(3, S, S)`` upscaled ``scale``× with each pose in ``poses (K, n, n)`` drawn over it:
+    the shape's wire-frame (its feature edges) if ``shape`` is given, else its coordinate axes.
+    ``camera_offset`` is added to the translation to get the camera-frame one (SYMSOL-T's centre);
+    rotation-only poses are drawn at the offset. Returns an ``(S·scale, S·scale, 3)`` uint8 RGB array."""
+    import cv2
+
+    img = (image.permute(1, 2, 0).numpy() * 255).clip(0, 255).astype(np.uint8)
+    img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    Ks = K.astype(np.float64).copy()
+    Ks[:2] *= scale
+    Ks[:2, 2] += (scale - 1) / 2.0  # pixel centres stay put when upscaling
+    R, t = _rt(poses)
+    off = np.zeros(3) if camera_offset is None else np.asarray(camera_offset, dtype=np.float64)
+    edges = None
+    if shape is not None:
+        from .data.symsol import make_mesh
+
+        mesh = make_mesh(shape)
+        sharp = mesh.face_adjacency_angles > np.radians(20)
+        idx = mesh.face_adjacency_edges[sharp]
+        edges = mesh.vertices[idx]  # (E, 2, 3)
+    colours = [(255, 80, 80), (80, 255, 80), (80, 160, 255), (255, 220, 60), (255, 80, 255)]
+    for k in range(len(R)):
+        tk = off + (t[k] if t is not None else 0.0)
+        rvec, _ = cv2.Rodrigues(R[k])
+        colour = colours[k % len(colours)]
+        if edges is not None and len(edges):
+            pts, _ = cv2.projectPoints(edges.reshape(-1, 3), rvec, tk, Ks, None)
+            pts = pts.reshape(-1, 2, 2)
+            for a, b in pts:
+                cv2.line(
+                    img,
+                    tuple(int(round(v)) for v in a),
+                    tuple(int(round(v)) for v in b),
+                    colour,
+                    1,
+                    cv2.LINE_AA,
+                )
+        else:
+            cv2.drawFrameAxes(img, Ks, None, rvec, tk, 1.0, 2)
+    return img
+
+
+def figure_trajectory(pred: Prediction, panels: int = 5, gt_rotations: np.ndarray | None = None) -> Any:
+    """The samples at ``panels`` evenly spaced points of the trajectory (prior → result)."""
+    from matplotlib.figure import Figure
+
+    from .viz import plot_so3
+
+    assert pred.trajectory is not None, "predict(..., trajectory=True) first"
+    T = pred.trajectory.shape[0] - 1
+    steps = sorted({round(i * T / (panels - 1)) for i in range(panels)})
+    fig = Figure(figsize=(4.2 * len(steps), 2.8))
+    for k, s in enumerate(steps):
+        ax = fig.add_subplot(1, len(steps), k + 1, projection="mollweide")
+        R, _ = _rt(pred.trajectory[s])
+        plot_so3(
+            R,
+            ax=ax,
+            gt=gt_rotations if s == T else None,
+            title="prior" if s == 0 else f"step {s}/{T}",
+            colorwheel=False,
+            marker_size=3,
+        )
+    return fig
+
+
+def save_prediction(
+    pred: Prediction,
+    out_dir: str | os.PathLike[str],
+    *,
+    image: Tensor | None = None,
+    K: np.ndarray | None = None,
+    camera_offset: np.ndarray | None = None,
+    shape: str | None = None,
+    gt_pose: Tensor | None = None,
+    top_modes: int = 3,
+    info: dict[str, Any] | None = None,
+) -> dict[str, Path]:
+    """Write the files listed in the module docstring into ``out_dir``; returns name → path."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files: dict[str, Path] = {}
+    arrays = {
+        "samples": pred.samples.numpy(),
+        "mode_poses": pred.modes.poses.numpy(),
+        "mode_weights": pred.modes.weights.numpy(),
+        "labels": pred.modes.labels.numpy(),
+    }
+    if pred.trajectory is not None:
+        arrays["trajectory"] = pred.trajectory.float().numpy()
+    if gt_pose is not None:
+        arrays["gt_pose"] = gt_pose.double().numpy()
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    files["npz"] = _atomic_bytes(out / "poses.npz", buf.getvalue())
+    Rm, tm = _rt(pred.modes.poses)
+    doc = {
+        **(info or {}),
+        "num_samples": int(pred.samples.shape[0]),
+        "seconds": pred.seconds,
+        "modes": [
+            {
+                "weight": float(pred.modes.weights[k]),
+                "rotation": Rm[k].tolist(),
+                **({"translation": tm[k].tolist()} if tm is not None else {}),
+            }
+            for k in range(len(pred.modes))
+        ],
+        "modes_summary": pred.modes.summary(),
+    }
+    files["json"] = atomic_write_text(out / "poses.json", json.dumps(doc, indent=2) + "\n")
+    gt_R = gt_t = None
+    if gt_pose is not None:
+        gt_R = gt_pose[:3, :3].double()
+        gt_t = gt_pose[:3, 3].double().numpy() if gt_pose.shape[-1] == 4 else None
+        if shape is not None:
+            from .data.symsol import equivalent_poses
+
+            gt_R = equivalent_poses(shape, gt_R, step_deg=10.0)
+        gt_R = gt_R.numpy()
+    files["so3"] = _save_fig(figure_so3(pred, gt_R, title=pred.modes.summary()), out / "so3.png")
+    if pred.samples.shape[-1] == 4:
+        files["translations"] = _save_fig(figure_translations(pred, gt_t), out / "translations.png")
+    if image is not None and K is not None and len(pred.modes):
+        import cv2
+
+        img = overlay(image, pred.modes.poses[:top_modes], K, camera_offset=camera_offset, shape=shape)
+        ok, png = cv2.imencode(".png", cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        assert ok
+        files["overlay"] = _atomic_bytes(out / "overlay.png", png.tobytes())
+    if pred.trajectory is not None:
+        files["trajectory"] = _save_fig(figure_trajectory(pred, gt_rotations=gt_R), out / "trajectory.png")
+    return files
+
+
+__all__ = [
+    "Prediction",
+    "figure_so3",
+    "figure_trajectory",
+    "figure_translations",
+    "load_image",
+    "overlay",
+    "predict",
+    "save_prediction",
+]
