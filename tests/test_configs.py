@@ -24,19 +24,64 @@ def _compose(overrides: list[str]):  # noqa: ANN202
         return compose(config_name="fit", overrides=overrides)
 
 
+# image experiments read rendered shards; here they render one image per shape on the fly instead
+RENDER_SMALL = [
+    "data.mode=render",
+    "data.n_per_shape_train=1",
+    "data.n_per_shape_test=1",
+    "data.num_workers=0",
+    "data.batch_size=2",
+]
+
+
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_experiment_builds(experiment: str) -> None:
-    cfg = _compose([f"+experiment={experiment}", *NO_HYDRA])
+    probe = _compose([f"+experiment={experiment}", *NO_HYDRA])
+    images = probe.module.cond_key == "image"
+    cfg = _compose([f"+experiment={experiment}", *NO_HYDRA, *(RENDER_SMALL if images else [])])
     module = instantiate(cfg.module)
     assert isinstance(module, PoseDiffusionModule)
     data = instantiate(cfg.data)
     data.setup("fit")
     batch = next(iter(data.train_dataloader()))
-    assert batch["cond"].shape[-1] == cfg.denoiser.cond_dim, "denoiser.cond_dim must match the data"
-    x = module.sample(batch["cond"][:2], 3, 2)
+    cond = batch[module.cond_key][:2]
+    if images:
+        assert cond.shape[-3:] == (3, cfg.data.image_size, cfg.data.image_size)
+        assert cfg.encoder.image_size == cfg.data.image_size
+    feature = module.encode(cond)
+    assert feature.shape == (2, cfg.denoiser.cond_dim), "denoiser.cond_dim must match the condition"
+    x = module.sample(cond, 3, 2)
     assert x.shape == (2, 3, module.group.matrix_dim, module.group.matrix_dim)
     loss = module.training_step({k: v[:2] for k, v in batch.items()}, 0)
     assert torch.isfinite(loss)
+    trainer = instantiate(cfg.trainer)  # the Lightning Trainer of the experiment builds too
+    assert trainer.max_steps == cfg.trainer.max_steps
+
+
+def test_paper_experiments_settings() -> None:
+    """symsol_so3 / symsolt_se3 / symsolt_r3so3 keep the paper's settings (supplement; reference code)."""
+    for name, group, steps in (
+        ("symsol_so3", "so3", 400_000),
+        ("symsolt_se3", "se3", 800_000),
+        ("symsolt_r3so3", "r3so3", 800_000),
+    ):
+        cfg = _compose([f"+experiment={name}", *NO_HYDRA])
+        assert cfg.group._target_.lower().endswith(group)
+        assert (cfg.encoder.arch, cfg.data.image_size, cfg.data.batch_size, cfg.module.num_noisy) == (
+            "resnet34",
+            224,
+            16,
+            256,
+        )
+        assert (cfg.module.lr, cfg.module.lr_final, cfg.module.decay_start) == (1e-4, 1e-5, 0.5)
+        assert cfg.trainer.max_steps == steps and cfg.schedule.num_levels == 100
+
+
+def test_ema_and_ddp_options() -> None:
+    cfg = _compose(["+experiment=quickstart", "ema=authors", "trainer=ddp", *NO_HYDRA])
+    ema = instantiate(cfg.ema)
+    assert type(ema).__name__ == "EMAWeightAveraging"
+    assert cfg.trainer.strategy == "ddp" and cfg.trainer.max_steps == 3000
 
 
 @pytest.mark.parametrize(

@@ -179,30 +179,14 @@ def _mean(values: list[float]) -> float:
 
 
 def _print_results(results: dict[str, Any]) -> None:
-    table = Table(title="evaluation (mean over test inputs; spread in degrees)")
-    for col in ("sampler", "steps", "shape", "spread°", "trans. err", "coverage"):
-        table.add_column(col)
+    """The before/after evaluations as markdown tables (per shape, then overall)."""
+    from .report import run_table
 
-    def fmt(v: Any) -> str:
-        return "-" if v is None or (isinstance(v, float) and v != v) else f"{v:.3f}"
-
-    rows = []
     if "before" in results:
-        rows.append(("untrained", str(results["before"]["num_steps"]), results["before"]))
+        print("\n## untrained model\n\n" + run_table(results["before"]))
     for sampler, by_steps in results.get("after", {}).items():
         for steps, res in by_steps.items():
-            rows.append((sampler, steps, res))
-    for sampler, steps, res in rows:
-        for shape, m in [*res["shapes"].items(), ("overall", res["overall"])]:
-            table.add_row(
-                sampler,
-                steps,
-                shape,
-                fmt(m.get("spread_deg")),
-                fmt(m.get("translation_error")),
-                fmt(m.get("coverage")),
-            )
-    Console(width=120).print(table)
+            print(f"\n## trained model — sampler {sampler}, {steps} steps\n\n" + run_table(res))
     json.dumps(results)  # fail loudly here if something is not serialisable
 
 
