@@ -205,3 +205,27 @@ def test_fit_refuses_to_resume_other_group(
     code = main(["fit", *SMALL, "group=r3so3", f"ckpt_path={ckpt}", f"hydra.run.dir={tmp_path / 'r'}"])
     assert code == 2
     assert "trained on group 'se3', not 'r3so3'" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_ddp_two_gloo_processes(tmp_path: Path) -> None:
+    """``trainer=ddp`` on the CPU: Lightning starts a second rank by re-running the command (gloo)."""
+    import shutil
+    import subprocess
+    import sys
+
+    script = shutil.which("posediff", path=str(Path(sys.executable).parent)) or "posediff"
+    out = tmp_path / "ddp"
+    args = [*SMALL, "trainer=ddp", "trainer.devices=2", "trainer.accelerator=cpu", "trainer.max_steps=3"]
+    res = subprocess.run(
+        [script, "fit", *args, "data.n_per_shape_train=8", f"hydra.run.dir={out}"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    assert "distributed_backend=gloo" in res.stdout + res.stderr
+    assert "All distributed processes registered" in res.stdout + res.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["train"]["steps"] == 3
+    assert (out / "checkpoints" / "last.ckpt").is_file()

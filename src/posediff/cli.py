@@ -127,7 +127,9 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
     flags = [a for a in args if a in ("-m", "--multirun")]
     args = flags + [a for a in args if a not in flags]
     argv = sys.argv
-    sys.argv = [f"posediff {name}", *args]
+    # Lightning's DDP launcher re-executes sys.argv for the other ranks: make that a runnable script
+    os.environ["POSEDIFF_COMMAND"] = name
+    sys.argv = [str(_PKG / "_relaunch.py"), *args]
     try:
         hydra.main(config_path=str(conf), config_name=cmd.config, version_base="1.3")(_main)()
     finally:

@@ -26,7 +26,7 @@ from torch.utils.data import DataLoader
 from .diffusion import Sampler
 from .metrics import mode_coverage, recall
 from .module import PoseDiffusionModule
-from .symmetry import min_angle_to_equivalents
+from .symmetry import SHAPES, min_angle_to_equivalents
 
 #: recall thresholds (paper's SYMSOL-T evaluation: degrees, and scene units)
 ROTATION_THRESHOLDS_DEG = (2.0, 5.0, 10.0)
@@ -49,7 +49,8 @@ def evaluate(
     max_inputs: int | None = None,
 ) -> dict[str, Any]:
     """Per-shape and overall metrics of ``num_samples`` hypotheses per test input (at most
-    ``max_inputs`` inputs)."""
+    ``max_inputs`` inputs). Batches carry ``shape``, the index in ``posediff.symmetry.SHAPES``;
+    ``shapes`` orders the per-shape rows."""
     was_training = module.training
     module.eval()
     try:
@@ -102,7 +103,7 @@ def _evaluate(
         count += int(batch["pose"].shape[0])
         rot = x[..., :3, :3].double()
         for k in batch["shape"].unique().tolist():
-            shape = shapes[k]
+            shape = SHAPES[k]
             sel = batch["shape"] == k
             acc = per_shape.setdefault(shape, {"rot": [], "trans": [], "coverage": []})
             r_gt = batch["rotation"][sel].double()
@@ -112,7 +113,9 @@ def _evaluate(
                 t_s, t_gt = x[sel][..., :3, 3].double(), batch["translation"][sel].double()
                 acc["trans"].append((t_s - t_gt.unsqueeze(-2)).norm(dim=-1).cpu())
     result: dict[str, Any] = {"shapes": {}}
-    for shape, acc in per_shape.items():
+    order = [s for s in shapes if s in per_shape] + [s for s in per_shape if s not in shapes]
+    for shape in order:
+        acc = per_shape[shape]
         rot_err = torch.cat(acc["rot"])  # (inputs, N) degrees
         cov = torch.cat(acc["coverage"])
         row: dict[str, float] = {"inputs": float(rot_err.shape[0]), "spread_deg": float(rot_err.mean())}

@@ -4,6 +4,7 @@ Each function here backs one ``posediff`` subcommand; ``posediff.cli`` only pars
 """
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -125,7 +126,8 @@ def fit(cfg: DictConfig) -> int:
     datamodule.setup("fit")
     shapes = list(getattr(datamodule, "shapes", []))
     results: dict[str, Any] = {"experiment": _experiment_name(), "diffusion": module.diffusion.describe()}
-    if cfg.eval.before:
+    rank0 = int(os.environ.get("LOCAL_RANK", "0")) == 0 and int(os.environ.get("NODE_RANK", "0")) == 0
+    if cfg.eval.before and rank0:  # DDP ranks > 0 re-run this function; they only train
         module.to(trainer.strategy.root_device)
         results["before"] = evaluate(
             module,
@@ -138,6 +140,8 @@ def fit(cfg: DictConfig) -> int:
         print(f"before training: spread {results['before']['overall'].get('spread_deg', float('nan')):.2f}°")
     start = time.perf_counter()
     trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
+    if not trainer.is_global_zero:
+        return 0
     losses = module.loss_history
     results["train"] = {
         "steps": int(trainer.global_step),

@@ -41,7 +41,8 @@ class SymmetryToy(Dataset[dict[str, Tensor]]):
     """``size`` toy samples drawn once from ``seed`` (vectorised), as a map-style dataset.
 
     Items: ``cond (C,)`` float32, ``pose (n, n)`` the group element, ``rotation (3, 3)``,
-    ``translation (3,)`` (zeros without translation), ``shape`` (index into ``shapes``).
+    ``translation (3,)`` (zeros without translation), ``shape`` (index into ``posediff.symmetry.SHAPES``,
+    as SYMSOL's).
     """
 
     def __init__(
@@ -91,7 +92,7 @@ class SymmetryToy(Dataset[dict[str, Tensor]]):
         self.cond = torch.cat(parts, dim=-1).float()
         self.rotation = rot.float()
         self.translation = trans.float()
-        self.shape = shape_idx
+        self.shape = global_idx
         if self.group.matrix_dim == 3:
             self.pose = self.rotation
         else:

@@ -123,7 +123,8 @@ class SymsolRenderDataset(Dataset):
 class SymsolShardDataset(IterableDataset):
     """Streams a rendered split. ``shuffle``: shard order and in-shard order change every epoch
     (seeded by ``seed`` and :meth:`set_epoch`); shards are split across DDP ranks, then workers.
-    ``limit_per_shape``: only the first that many samples of each shape (in index order)."""
+    ``shapes``: only these shapes (names); ``limit_per_shape``: only the first that many samples of
+    each shape (in index order)."""
 
     def __init__(
         self,
@@ -134,17 +135,21 @@ class SymsolShardDataset(IterableDataset):
         with_depth: bool = False,
         rotation_only: bool = False,
         limit_per_shape: int | None = None,
+        shapes: Sequence[str] | None = None,
     ) -> None:
         self.shards = shards
         self.rotation_only = rotation_only
         self.keep: np.ndarray | None = None
+        sid = np.asarray(shards.index["shape_id"])
+        if shapes is not None:
+            self.keep = np.isin(sid, [SHAPES.index(s) for s in shapes])
         if limit_per_shape is not None:
-            sid = np.asarray(shards.index["shape_id"])
             rank = np.zeros(len(sid), dtype=np.int64)
             for k in np.unique(sid):
                 sel = np.flatnonzero(sid == k)
                 rank[sel] = np.arange(len(sel))
-            self.keep = rank < int(limit_per_shape)
+            keep = rank < int(limit_per_shape)
+            self.keep = keep if self.keep is None else self.keep & keep
         self.shuffle = shuffle
         self.seed = seed
         self.with_depth = with_depth
@@ -271,9 +276,10 @@ class SymsolDataModule(L.LightningDataModule):
             raise ValueError(
                 f"{shards.path} holds {m['dataset']}/{m['variant']}, but the config asks for {self.dataset}/{self.variant}"
             )
-        if tuple(m["shapes"]) != self.shapes:
+        missing = [s for s in self.shapes if s not in m["shapes"]]
+        if missing:
             raise ValueError(
-                f"{shards.path} holds the shapes {m['shapes']}, the config asks for {list(self.shapes)}"
+                f"{shards.path} holds the shapes {m['shapes']}, not {missing} (set data.shapes to a subset, or render them)"
             )
         if m["image_size"] != self.image_size:
             raise ValueError(
@@ -287,6 +293,7 @@ class SymsolDataModule(L.LightningDataModule):
             with_depth=self.with_depth,
             rotation_only=self.rotation_only,
             limit_per_shape=None if split == "train" else self.n_per_shape[split],
+            shapes=None if tuple(m["shapes"]) == self.shapes else self.shapes,
         )
 
     def setup(self, stage: str | None = None) -> None:
