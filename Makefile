@@ -34,10 +34,29 @@ test: ## the default test suite (not slow, not gpu)
 test-all: ## every test, slow ones included
 	$(PY) -m pytest -q -m "not gpu"
 
-demo: ## the Lie group walk-through (notebooks/01) in full mode; figures in outputs/demo/
+DEMO := outputs/demo
+demo: ## render a small SYMSOL-T, train `quickstart` on the CPU, evaluate, predict (≈15 min on 2 cores; outputs/demo/)
+	@set -e; start=$$(date +%s); \
+	for split in train test; do \
+	  $(VENV)/bin/posediff data render dataset=symsolt split=$$split out=data/symsolt_uniform_cpu progress=false; \
+	done; \
+	rm -rf $(DEMO).partial; \
+	$(VENV)/bin/posediff fit +experiment=quickstart hydra.run.dir=$(DEMO).partial/fit trainer.enable_progress_bar=false; \
+	ckpt=$(DEMO).partial/fit/checkpoints/last.ckpt; \
+	for shape in tet cube cyl; do \
+	  $(VENV)/bin/posediff predict ckpt_path=$$ckpt index=0 +data.shapes=[$$shape] trajectory=true \
+	    hydra.run.dir=$(DEMO).partial/predict_$$shape; \
+	done; \
+	rm -rf $(DEMO) && mv $(DEMO).partial $(DEMO); \
+	echo; cat $(DEMO)/fit/metrics.md | sed -n '1,14p'; echo; \
+	echo "demo finished in $$(( $$(date +%s) - start )) s"; \
+	echo "metrics:  $(DEMO)/fit/metrics.md (metrics.json)"; \
+	echo "pictures: $$(ls $(DEMO)/predict_*/*.png | tr '\n' ' ')"; \
+	echo "model:    $(DEMO)/fit/checkpoints/last.ckpt  (try: posediff eval ckpt_path=$(DEMO)/fit/checkpoints/last.ckpt -m sampler.num_steps=5,10,50,100)"
+
+walkthrough: ## the Lie group walk-through (notebooks/01) in full mode; figures in outputs/walkthrough/
 	$(VENV)/bin/posediff groups
-	POSEDIFF_FAST=0 POSEDIFF_NOTEBOOK_OUT=outputs/demo MPLBACKEND=Agg $(PY) notebooks/01_lie_groups.py
-	@echo "figures: $$(ls outputs/demo/*.png)"
+	POSEDIFF_FAST=0 POSEDIFF_NOTEBOOK_OUT=outputs/walkthrough MPLBACKEND=Agg $(PY) notebooks/01_lie_groups.py
 
 figures: ## regenerate the README figures (docs/images/)
 	POSEDIFF_FAST=0 POSEDIFF_NOTEBOOK_OUT=docs/images MPLBACKEND=Agg $(PY) notebooks/01_lie_groups.py
@@ -69,4 +88,4 @@ clean: ## remove caches and outputs (keeps .venv)
 	rm -rf .pytest_cache outputs multirun build dist
 	find . -name __pycache__ -type d -prune -exec rm -rf {} +
 
-.PHONY: help install system-deps test test-all demo figures bench bench-tuned bench-render notebooks lint clean
+.PHONY: help install system-deps test test-all demo walkthrough figures bench bench-tuned bench-render notebooks lint clean

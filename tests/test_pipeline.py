@@ -127,6 +127,7 @@ def test_eval_refusals(trained: Path, tmp_path: Path, capsys: pytest.CaptureFixt
         (["group=so3"], "trained on group 'se3', not 'so3'"),
         (["+data.shapes=[icosa]"], "cannot evaluate ['icosa']"),
         (["sampler.num_steps=0"], "sampler.num_steps must be ≥ 1"),
+        (["sampler.num_steps=500"], "num_steps must be in [1, 100] for this schedule, got 500"),
         (["sampler=nope"], "unknown sampler 'nope'; available: ancestral, few_step, random_walk"),
         ([f"ckpt_path={tmp_path / 'none.ckpt'}"], "not found"),
     ]

@@ -139,7 +139,8 @@ def _evaluate(
     result["inputs"] = count
     result["num_samples"] = int(num_samples)
     s = sampler or module.sampler
-    result["num_steps"] = num_steps if num_steps is not None else s.num_steps
+    steps = num_steps if num_steps is not None else s.num_steps
+    result["num_steps"] = steps if steps is not None else len(s.diffusion.schedule.timesteps(None))
     result["sampler"] = getattr(s, "name", type(s).__name__)
     return result
 

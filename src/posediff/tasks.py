@@ -90,7 +90,7 @@ def fit(cfg: DictConfig) -> int:
     """
     import lightning as L
 
-    from ._io import atomic_write_json
+    from ._io import atomic_write_json, atomic_write_text
     from .evaluate import evaluate
     from .module import PoseDiffusionModule
 
@@ -164,9 +164,12 @@ def fit(cfg: DictConfig) -> int:
                 sampler=sampler,
                 seed=int(cfg.eval.seed),
             )
+    json.dumps(results)  # fail here, before writing, if something is not serialisable
+    text = _results_markdown(results)
+    atomic_write_text(out_dir / "metrics.md", text)
     path = atomic_write_json(out_dir / "metrics.json", results)
-    _print_results(results)
-    print(f"metrics: {path}")
+    print(text)
+    print(f"metrics: {path} (and metrics.md)")
     return 0
 
 
@@ -182,16 +185,32 @@ def _mean(values: list[float]) -> float:
     return sum(values) / len(values) if values else float("nan")
 
 
-def _print_results(results: dict[str, Any]) -> None:
-    """The before/after evaluations as markdown tables (per shape, then overall)."""
+def _results_markdown(results: dict[str, Any]) -> str:
+    """The before/after evaluations as markdown: a before → after spread line per shape, then the
+    full per-shape tables."""
     from .report import run_table
 
+    parts = [f"# posediff fit: {results.get('experiment', 'none')}\n"]
+    train = results.get("train", {})
+    if train:
+        parts.append(
+            f"trained {train['steps']} steps in {train['seconds']:.0f} s; "
+            f"loss {train['loss_first']:.3f} → {train['loss_last']:.3f} (mean of the first / last 50 steps)\n"
+        )
+    after = [(name, steps, res) for name, by in results.get("after", {}).items() for steps, res in by.items()]
+    if "before" in results and after:
+        b, (name, steps, a) = results["before"], after[-1]
+        lines = ["| shape | spread before (°) | spread after (°) |", "|---|---|---|"]
+        for shape in [*a["shapes"], "overall"]:
+            mb = b["overall"] if shape == "overall" else b["shapes"].get(shape, {})
+            ma = a["overall"] if shape == "overall" else a["shapes"][shape]
+            lines.append(f"| {shape} | {mb.get('spread_deg', float('nan')):.1f} | {ma['spread_deg']:.1f} |")
+        parts.append(f"spread, untrained vs trained ({name}, {steps} steps):\n\n" + "\n".join(lines) + "\n")
     if "before" in results:
-        print("\n## untrained model\n\n" + run_table(results["before"]))
-    for sampler, by_steps in results.get("after", {}).items():
-        for steps, res in by_steps.items():
-            print(f"\n## trained model — sampler {sampler}, {steps} steps\n\n" + run_table(res))
-    json.dumps(results)  # fail loudly here if something is not serialisable
+        parts.append("## untrained model\n\n" + run_table(results["before"]))
+    for name, steps, res in after:
+        parts.append(f"## trained model — sampler {name}, {steps} steps\n\n" + run_table(res))
+    return "\n".join(parts)
 
 
 def render_data(cfg: DictConfig) -> int:
@@ -274,9 +293,12 @@ def _checkpoint_run(cfg: DictConfig) -> tuple[Any, DictConfig]:
     if sampler:
         s = OmegaConf.to_container(sampler, resolve=True)
         run.module.sampler = s if "_target_" in s else OmegaConf.merge(run.module.sampler, s)
-    if run.module.sampler.get("num_steps") is not None and int(run.module.sampler.num_steps) < 1:
-        raise ValueError(f"sampler.num_steps must be ≥ 1, got {run.module.sampler.num_steps}")
+    steps = run.module.sampler.get("num_steps")
+    if steps is not None and int(steps) < 1:
+        raise ValueError(f"sampler.num_steps must be ≥ 1, got {steps}")
     module.sampler = instantiate(run.module.sampler)(module.diffusion)
+    if steps is not None:
+        module.diffusion.schedule.timesteps(int(steps))  # > the trained levels: one-line ValueError
     return module, run
 
 
@@ -366,7 +388,9 @@ def predict(cfg: DictConfig) -> int:
         if cfg.index is not None:
             sample = _test_sample(run, int(cfg.index))
             image, gt_pose = sample["image"], sample["pose"]
-            shape = list(run.data.shapes)[int(sample["shape"])]
+            from .symmetry import SHAPES
+
+            shape = SHAPES[int(sample["shape"])]
         else:
             image = load_image(str(cfg.image), size)
         if shape is not None:
