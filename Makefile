@@ -34,25 +34,8 @@ test: ## the default test suite (not slow, not gpu)
 test-all: ## every test, slow ones included
 	$(PY) -m pytest -q -m "not gpu"
 
-DEMO := outputs/demo
 demo: ## render a small SYMSOL-T, train `quickstart` on the CPU, evaluate, predict (≈15 min on 2 cores; outputs/demo/)
-	@set -e; start=$$(date +%s); \
-	for split in train test; do \
-	  $(VENV)/bin/posediff data render dataset=symsolt split=$$split out=data/symsolt_uniform_cpu progress=false; \
-	done; \
-	rm -rf $(DEMO).partial; \
-	$(VENV)/bin/posediff fit +experiment=quickstart hydra.run.dir=$(DEMO).partial/fit trainer.enable_progress_bar=false; \
-	ckpt=$(DEMO).partial/fit/checkpoints/last.ckpt; \
-	for shape in tet cube cyl; do \
-	  $(VENV)/bin/posediff predict ckpt_path=$$ckpt index=0 +data.shapes=[$$shape] trajectory=true \
-	    hydra.run.dir=$(DEMO).partial/predict_$$shape; \
-	done; \
-	rm -rf $(DEMO) && mv $(DEMO).partial $(DEMO); \
-	echo; cat $(DEMO)/fit/metrics.md | sed -n '1,14p'; echo; \
-	echo "demo finished in $$(( $$(date +%s) - start )) s"; \
-	echo "metrics:  $(DEMO)/fit/metrics.md (metrics.json)"; \
-	echo "pictures: $$(ls $(DEMO)/predict_*/*.png | tr '\n' ' ')"; \
-	echo "model:    $(DEMO)/fit/checkpoints/last.ckpt  (try: posediff eval ckpt_path=$(DEMO)/fit/checkpoints/last.ckpt -m sampler.num_steps=5,10,50,100)"
+	$(VENV)/bin/posediff demo trainer.enable_progress_bar=false
 
 walkthrough: ## the Lie group walk-through (notebooks/01) in full mode; figures in outputs/walkthrough/
 	$(VENV)/bin/posediff groups

@@ -32,13 +32,13 @@ def test_toy_conditions_are_invariant_and_poses_cover_the_equivalent_set(group: 
     data = SymmetryToy(group, 600, shapes=("cube", "cone"), seed=3, num_poses=2)
     shape_names = ("cube", "cone")
     # the condition depends only on the canonical pose (and translation), not on the symmetry drawn
-    for k, shape in enumerate(shape_names):
-        sel = data.shape == k
+    for shape in shape_names:
+        sel = data.shape == SHAPES.index(shape)  # global ids, as SYMSOL's
         canon = canonical_rotation(shape, data.rotation[sel].double())
         assert_close(data.cond[sel][:, 5:14].double(), canon.flatten(-2), atol=1e-5, rtol=0)
         distinct = torch.unique(canon.flatten(-2).round(decimals=3), dim=0)
         assert len(distinct) == 2  # num_poses fixed poses per shape
-    cube = data.rotation[data.shape == 0].double()
+    cube = data.rotation[data.shape == SHAPES.index("cube")].double()
     # every cube sample is one of the 2 × 24 equivalent poses, and most of them occur
     base = spread_poses("cube", 2, 12345)
     angles = torch.stack([min_angle_to_equivalents("cube", cube, b) for b in base]).min(0).values
