@@ -81,7 +81,7 @@ def test_ema_and_ddp_options() -> None:
     cfg = _compose(["+experiment=quickstart", "ema=authors", "trainer=ddp", *NO_HYDRA])
     ema = instantiate(cfg.ema)
     assert type(ema).__name__ == "EMAWeightAveraging"
-    assert cfg.trainer.strategy == "ddp" and cfg.trainer.max_steps == 3000
+    assert cfg.trainer.strategy == "ddp" and cfg.trainer.max_steps == 2500
 
 
 @pytest.mark.parametrize(
