@@ -6,6 +6,7 @@ has to exist; the model trains for two steps — these tests check the plumbing,
 """
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -155,8 +156,11 @@ def test_predict_on_an_image_file(trained: Path, tmp_path: Path) -> None:
     assert z["samples"].shape == (50, 4, 4) and z["mode_weights"].sum() == pytest.approx(1.0)
     doc = json.loads((out / "poses.json").read_text())
     assert doc["num_samples"] == 50 and len(doc["modes"]) == len(z["mode_weights"])
+    umask = os.umask(0)
+    os.umask(umask)
     for name in ("so3.png", "translations.png", "overlay.png"):
         assert (out / name).stat().st_size > 1000, name
+        assert (out / name).stat().st_mode & 0o777 == 0o666 & ~umask, "written atomically, usual permissions"
     with Image.open(out / "overlay.png") as im:
         assert im.size == (128, 128)  # 32 px model input × 4
 
@@ -230,3 +234,19 @@ def test_ddp_two_gloo_processes(tmp_path: Path) -> None:
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["train"]["steps"] == 3
     assert (out / "checkpoints" / "last.ckpt").is_file()
+
+
+@pytest.mark.slow
+def test_demo_command(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``posediff demo`` end to end with a two-step fit (it renders the whole cpu-preset SYMSOL-T)."""
+    monkeypatch.chdir(tmp_path)
+    quick = ["trainer.max_steps=2", "eval.num_samples=4", "data.n_per_shape_test=1", "module.num_noisy=8"]
+    assert main(["demo", "out=demo", "trainer.enable_progress_bar=false", *quick]) == 0
+    out = capsys.readouterr().out
+    assert "spread before (°)" in out and "t err after" in out and "demo finished in" in out
+    for shape in ("tet", "cube", "cyl"):
+        assert (tmp_path / "demo" / f"predict_{shape}" / "so3.png").is_file()
+    assert (tmp_path / "demo" / "predict_tet" / "trajectory.png").is_file()
+    assert not (tmp_path / "demo.partial").exists()

@@ -31,6 +31,10 @@ COMMANDS: dict[str, Command] = {
         "predict",
     ),
     "report": Command("one table from an eval multirun: posediff report dir=multirun/eval/<stamp>", "report"),
+    "demo": Command(
+        "render a small SYMSOL-T, train `quickstart` on the CPU, evaluate, predict: posediff demo [out=DIR] [fit overrides]",
+        None,
+    ),
     "data": Command("make datasets: posediff data render|grid [key=value ...]", None),
 }
 

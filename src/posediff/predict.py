@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._io import atomic_write_text
+from ._io import atomic_write_bytes, atomic_write_text
 
 
 def load_image(path: str | os.PathLike[str], size: int) -> Tensor:
@@ -97,25 +97,10 @@ def predict(
     )
 
 
-def _atomic_bytes(path: Path, data: bytes) -> Path:
-    import tempfile
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
 def _save_fig(fig: Any, path: Path) -> Path:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    return _atomic_bytes(path, buf.getvalue())
+    return atomic_write_bytes(path, buf.getvalue())
 
 
 def _rt(poses: Tensor) -> tuple[np.ndarray, np.ndarray | None]:
@@ -264,7 +249,7 @@ def save_prediction(
         arrays["gt_pose"] = gt_pose.double().numpy()
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
-    files["npz"] = _atomic_bytes(out / "poses.npz", buf.getvalue())
+    files["npz"] = atomic_write_bytes(out / "poses.npz", buf.getvalue())
     Rm, tm = _rt(pred.modes.poses)
     doc = {
         **(info or {}),
@@ -299,7 +284,7 @@ def save_prediction(
         img = overlay(image, pred.modes.poses[:top_modes], K, camera_offset=camera_offset, shape=shape)
         ok, png = cv2.imencode(".png", cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
         assert ok
-        files["overlay"] = _atomic_bytes(out / "overlay.png", png.tobytes())
+        files["overlay"] = atomic_write_bytes(out / "overlay.png", png.tobytes())
     if pred.trajectory is not None:
         files["trajectory"] = _save_fig(figure_trajectory(pred, gt_rotations=gt_R), out / "trajectory.png")
     return files

@@ -200,12 +200,20 @@ def _results_markdown(results: dict[str, Any]) -> str:
     after = [(name, steps, res) for name, by in results.get("after", {}).items() for steps, res in by.items()]
     if "before" in results and after:
         b, (name, steps, a) = results["before"], after[-1]
-        lines = ["| shape | spread before (°) | spread after (°) |", "|---|---|---|"]
+        has_t = "translation_error" in a["overall"]
+        head = "| shape | spread before (°) | spread after (°) |" + (
+            " t err before | t err after |" if has_t else ""
+        )
+        lines = [head, "|---|---|---|" + ("---|---|" if has_t else "")]
+        nan = float("nan")
         for shape in [*a["shapes"], "overall"]:
             mb = b["overall"] if shape == "overall" else b["shapes"].get(shape, {})
             ma = a["overall"] if shape == "overall" else a["shapes"][shape]
-            lines.append(f"| {shape} | {mb.get('spread_deg', float('nan')):.1f} | {ma['spread_deg']:.1f} |")
-        parts.append(f"spread, untrained vs trained ({name}, {steps} steps):\n\n" + "\n".join(lines) + "\n")
+            row = f"| {shape} | {mb.get('spread_deg', nan):.1f} | {ma['spread_deg']:.1f} |"
+            if has_t:
+                row += f" {mb.get('translation_error', nan):.3f} | {ma.get('translation_error', nan):.3f} |"
+            lines.append(row)
+        parts.append(f"untrained vs trained ({name}, {steps} steps):\n\n" + "\n".join(lines) + "\n")
     if "before" in results:
         parts.append("## untrained model\n\n" + run_table(results["before"]))
     for name, steps, res in after:

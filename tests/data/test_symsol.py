@@ -310,7 +310,9 @@ def test_datamodule_streams_shards_and_renders_on_the_fly(tmp_path: Path) -> Non
     assert not torch.equal(seen, torch.arange(40)), "training order must be shuffled"
     test = torch.cat([b["index"] for b in dm.test_dataloader()])
     assert test.tolist() == list(range(10))
-    sub = SymsolDataModule("symsolt", "uniform", root=str(tmp_path), image_size=32, shapes=["cube"], batch_size=2)
+    sub = SymsolDataModule(
+        "symsolt", "uniform", root=str(tmp_path), image_size=32, shapes=["cube"], batch_size=2
+    )
     sub.setup("fit")
     ids = torch.cat([b["shape"] for b in sub.train_dataloader()])
     assert len(ids) == 8 and set(ids.tolist()) == {SHAPE_IDS["cube"]}, "a subset of the rendered shapes"
@@ -318,7 +320,9 @@ def test_datamodule_streams_shards_and_renders_on_the_fly(tmp_path: Path) -> Non
     limited.setup("test")
     assert sorted(torch.cat([b["shape"] for b in limited.test_dataloader()]).tolist()) == list(range(5))
     with pytest.raises(ValueError, match=r"not \['nope'\]"):
-        SymsolDataModule("symsolt", "uniform", root=str(tmp_path), image_size=32, shapes=["nope"]).setup("fit")
+        SymsolDataModule("symsolt", "uniform", root=str(tmp_path), image_size=32, shapes=["nope"]).setup(
+            "fit"
+        )
     with pytest.raises(ValueError, match="rendered at 32 px"):
         SymsolDataModule("symsolt", "uniform", root=str(tmp_path), image_size=64).setup("fit")
 
