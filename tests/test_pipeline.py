@@ -250,3 +250,32 @@ def test_demo_command(
         assert (tmp_path / "demo" / f"predict_{shape}" / "so3.png").is_file()
     assert (tmp_path / "demo" / "predict_tet" / "trajectory.png").is_file()
     assert not (tmp_path / "demo.partial").exists()
+
+
+def test_resume_continues_exactly(trained: Path, tmp_path: Path) -> None:
+    """``ckpt_path=last.ckpt`` restores step, optimizer and schedule: training continues at step 2."""
+    out = tmp_path / "resumed"
+    ckpt = trained / "checkpoints" / "last.ckpt"
+    before = torch.load(ckpt, weights_only=True)
+    assert before["global_step"] == 2
+    args = ["fit", *SMALL, "trainer.max_steps=4", "trainer.val_check_interval=2", f"ckpt_path={ckpt}"]
+    assert main([*args, f"hydra.run.dir={out}"]) == 0
+    after = torch.load(out / "checkpoints" / "last.ckpt", weights_only=True)
+    assert after["global_step"] == 4
+    assert after["optimizer_states"][0]["state"][0]["step"] == 4, "Adam's state was restored, not restarted"
+    assert json.loads((out / "metrics.json").read_text())["train"]["steps"] == 4
+
+
+def test_ema_checkpoint_holds_the_averaged_weights(tmp_path: Path) -> None:
+    """``ema=authors``: checkpoints (and so eval / predict) carry the EMA weights, not the live ones."""
+    base = ["fit", *SMALL, "trainer.max_steps=3"]
+    ema = ["ema=authors", "ema.update_every_n_steps=1", "ema.decay=0.5"]
+    assert main([*base, *ema, f"hydra.run.dir={tmp_path / 'ema'}"]) == 0
+    assert main([*base, f"hydra.run.dir={tmp_path / 'plain'}"]) == 0  # same seed, same batches
+    with_ema = torch.load(tmp_path / "ema" / "checkpoints" / "last.ckpt", weights_only=True)
+    plain = torch.load(tmp_path / "plain" / "checkpoints" / "last.ckpt", weights_only=True)
+    assert int(with_ema["averaging_state"]["n_averaged"]) == 3, "one EMA update per step"
+    key = "denoiser.out.weight"
+    assert not torch.allclose(with_ema["state_dict"][key], plain["state_dict"][key])
+    module = load_checkpoint(tmp_path / "ema" / "checkpoints" / "last.ckpt")
+    torch.testing.assert_close(module.state_dict()[key], with_ema["state_dict"][key])
