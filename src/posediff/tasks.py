@@ -84,7 +84,7 @@ def check_group(cfg: DictConfig) -> int:
 def fit(cfg: DictConfig) -> int:
     """``posediff fit``: train ``cfg.module`` on ``cfg.data`` with ``cfg.trainer``, then evaluate it.
 
-    Writes ``metrics.json`` (atomically) in the Hydra run folder: the untrained model's metrics
+    Writes ``metrics.json`` and ``metrics.md`` (atomically) in the Hydra run folder: the untrained model's metrics
     (``before``), the training loss curve summary and, for every sampler in ``eval.samplers`` and
     every step count in ``eval.num_steps``, per-shape spread / translation error / coverage.
     """
