@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from posediff.metrics.bop import add, adi, mspd, mssd, re, symmetry_transforms, te
+from posediff.metrics.bop import add, adi, mspd, mssd, re, symmetry_transforms, te, vsd
 
 TLESS = Path(__file__).resolve().parents[3] / "shared" / "tless" / "models_info_obj1_obj5.json"
 BOX = np.array([[x, y, z] for x in (-2.0, 2.0) for y in (-1.0, 1.0) for z in (-0.5, 0.5)])  # 4×2×1 box
@@ -77,3 +77,25 @@ def test_known_shift() -> None:
     assert re(R, R) == pytest.approx(0.0)
     # every point moves by f·|shift|/z in the image: MSPD is the largest, for the nearest points (z = 9.5)
     assert mspd(R, t + shift, R, t, K, BOX, syms) == pytest.approx(500 * 0.5 / 9.5)
+
+
+def test_vsd_hand_cases() -> None:
+    """VSD on depth maps: equal maps → 0; no estimate → 1; a fronto-parallel plate moved back by
+    d → error 0 for τ > d/diameter and 1 for τ ≤ d/diameter; a half-covering estimate → ½."""
+    Kc = np.array([[100.0, 0, 31.5], [0, 100.0, 31.5], [0, 0, 1]])
+    plate = np.zeros((64, 64))
+    plate[16:48, 16:48] = 1000.0  # a square plate at 1000 mm
+    taus = [0.05, 0.1, 0.2]
+    assert vsd(plate, plate, plate, Kc, 15.0, taus, diameter=100.0) == [0.0, 0.0, 0.0]
+    assert vsd(np.zeros_like(plate), plate, plate, Kc, 15.0, taus, diameter=100.0) == [1.0, 1.0, 1.0]
+    assert vsd(np.zeros_like(plate), np.zeros_like(plate), plate, Kc, 15.0, taus, 100.0) == [1.0, 1.0, 1.0]
+    # the estimate 10 mm behind, test depth 0 (no measurement, so everything is visible): distances differ
+    # by 10·(ray length / depth) ≥ 10 mm = 0.1 diameters
+    back = np.where(plate > 0, 1010.0, 0.0)
+    errs = vsd(back, plate, np.zeros_like(plate), Kc, 15.0, taus, diameter=100.0)
+    assert errs == [1.0, 1.0, 0.0]
+    half = plate.copy()
+    half[16:48, 32:48] = 0.0  # the estimate covers half of the ground truth's pixels
+    assert vsd(half, plate, plate, Kc, 15.0, taus, diameter=100.0) == [0.5, 0.5, 0.5]
+    with pytest.raises(ValueError, match="available: step"):
+        vsd(plate, plate, plate, Kc, 15.0, taus, 100.0, cost="tlinear")

@@ -11,6 +11,11 @@ model frame (mm for BOP models), poses ``R (3, 3)``, ``t (3,)`` map model → ca
 * :func:`mssd` — maximum symmetry-aware surface distance:
   ``min_{S} max_{x ∈ pts} ‖(R_e x + t_e) − (R_g (R_S x + t_S) + t_g)‖``.
 * :func:`mspd` — the same with the 2-D distance between the projections by ``K`` (pixels).
+* :func:`vsd` — Visible Surface Discrepancy on depth maps (BOP19 visibility, step cost), one error
+  per τ: with ``D`` the distance from the camera centre of each pixel's surface point (depth → distance
+  along the ray), ``V̂`` / ``V̄`` the visible masks of the estimate / ground truth w.r.t. the test depth
+  (tolerance δ), ``e_τ = (|{p ∈ V̂ ∩ V̄ : |D̂ − D̄| ≥ τ}| + |V̂ ∪ V̄| − |V̂ ∩ V̄|) / |V̂ ∪ V̄|``, and 1 when
+  the union is empty. Distances are divided by the diameter with ``normalized_by_diameter``.
 * :func:`add` — mean distance of corresponding points; :func:`adi` — mean distance to the nearest
   point of the other set (ADD-S); :func:`re` — rotation error in degrees; :func:`te` —
   translation error (units of t).
@@ -103,6 +108,55 @@ def mspd(R_est, t_est, R_gt, t_gt, K, pts, syms) -> float:  # noqa: ANN001
     )
 
 
+def depth_to_distance(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Per-pixel distance from the camera centre of the surface point seen at depth ``depth (H, W)``."""
+    depth = np.asarray(depth, dtype=np.float64)
+    h, w = depth.shape
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    x = (u - K[0, 2]) / K[0, 0]
+    y = (v - K[1, 2]) / K[1, 1]
+    return depth * np.sqrt(x * x + y * y + 1.0)
+
+
+def _visible(d_test: np.ndarray, d_model: np.ndarray, delta: float) -> np.ndarray:
+    """BOP19 visibility: the model surface exists and is not behind the test surface by more than δ
+    (pixels without a test measurement count as visible)."""
+    return (d_model > 0) & ((d_model - d_test <= delta) | (d_test == 0))
+
+
+def vsd(
+    depth_est,  # noqa: ANN001
+    depth_gt,  # noqa: ANN001
+    depth_test,  # noqa: ANN001
+    K,  # noqa: ANN001
+    delta: float,
+    taus,  # noqa: ANN001
+    diameter: float,
+    normalized_by_diameter: bool = True,
+    cost: str = "step",
+) -> list[float]:
+    """Visible Surface Discrepancy (module docstring): one error per τ in ``taus``. Depth maps are
+    ``(H, W)`` in the units of δ (0 = no surface); ``K`` the camera matrix."""
+    if cost != "step":
+        raise ValueError(f"unknown VSD cost {cost!r}; available: step (BOP19)")
+    K = np.asarray(K, dtype=np.float64)
+    shapes = {np.shape(depth_est), np.shape(depth_gt), np.shape(depth_test)}
+    if len(shapes) != 1:
+        raise ValueError(f"depth maps differ in shape: {sorted(shapes)}")
+    d_test, d_gt, d_est = (depth_to_distance(d, K) for d in (depth_test, depth_gt, depth_est))
+    vis_gt = _visible(d_test, d_gt, delta)
+    vis_est = _visible(d_test, d_est, delta) | (vis_gt & (d_est > 0))
+    inter = vis_gt & vis_est
+    union = int((vis_gt | vis_est).sum())
+    if union == 0:
+        return [1.0 for _ in taus]
+    dists = np.abs(d_gt[inter] - d_est[inter])
+    if normalized_by_diameter:
+        dists = dists / float(diameter)
+    outside = union - int(inter.sum())
+    return [float(((dists >= tau).sum() + outside) / union) for tau in taus]
+
+
 def add(R_est, t_est, R_gt, t_gt, pts) -> float:  # noqa: ANN001
     """Average Distance of model points (corresponding points)."""
     pts = np.asarray(pts, dtype=np.float64)
@@ -135,4 +189,4 @@ def te(t_est, t_gt) -> float:  # noqa: ANN001
     )
 
 
-__all__ = ["add", "adi", "mspd", "mssd", "re", "symmetry_transforms", "te"]
+__all__ = ["add", "adi", "depth_to_distance", "mspd", "mssd", "re", "symmetry_transforms", "te", "vsd"]
