@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from ._io import atomic_write_bytes, atomic_write_text
+from .viz import save_figure
 
 
 def load_image(path: str | os.PathLike[str], size: int) -> Tensor:
@@ -95,12 +96,6 @@ def predict(
         trajectory=None if path is None else path[:, 0].double().cpu(),
         seconds=seconds,
     )
-
-
-def _save_fig(fig: Any, path: Path) -> Path:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    return atomic_write_bytes(path, buf.getvalue())
 
 
 def _rt(poses: Tensor) -> tuple[np.ndarray, np.ndarray | None]:
@@ -275,9 +270,11 @@ def save_prediction(
 
             gt_R = equivalent_poses(shape, gt_R, step_deg=10.0)
         gt_R = gt_R.numpy()
-    files["so3"] = _save_fig(figure_so3(pred, gt_R, title=pred.modes.summary()), out / "so3.png")
+    files["so3"] = save_figure(figure_so3(pred, gt_R, title=pred.modes.summary()), out / "so3.png", dpi=110)
     if pred.samples.shape[-1] == 4:
-        files["translations"] = _save_fig(figure_translations(pred, gt_t), out / "translations.png")
+        files["translations"] = save_figure(
+            figure_translations(pred, gt_t), out / "translations.png", dpi=110
+        )
     if image is not None and K is not None and len(pred.modes):
         import cv2
 
@@ -286,7 +283,9 @@ def save_prediction(
         assert ok
         files["overlay"] = atomic_write_bytes(out / "overlay.png", png.tobytes())
     if pred.trajectory is not None:
-        files["trajectory"] = _save_fig(figure_trajectory(pred, gt_rotations=gt_R), out / "trajectory.png")
+        files["trajectory"] = save_figure(
+            figure_trajectory(pred, gt_rotations=gt_R), out / "trajectory.png", dpi=110
+        )
     return files
 
 
