@@ -28,12 +28,13 @@ class CheckpointError(ValueError):
 
 
 def read_checkpoint(path: str | os.PathLike[str], map_location: Any = "cpu") -> dict[str, Any]:
-    """The checkpoint dict (``weights_only=True``); one-line errors for a missing or foreign file."""
+    """The checkpoint dict (``weights_only=True``, memory-mapped, so reading only its config costs
+    nothing); one-line errors for a missing or foreign file."""
     p = Path(path)
     if not p.is_file():
         raise CheckpointError(f"checkpoint {p} not found (posediff fit writes them to <run>/checkpoints/)")
     try:
-        ckpt = torch.load(p, map_location=map_location, weights_only=True)
+        ckpt = torch.load(p, map_location=map_location, weights_only=True, mmap=True)
     except Exception as e:  # noqa: BLE001 - any unreadable file gets the same one-line message
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise CheckpointError(f"cannot read checkpoint {p}: {first}") from e
@@ -78,18 +79,9 @@ def check_compatible(
             )
 
 
-def load_checkpoint(
-    path: str | os.PathLike[str],
-    *,
-    map_location: Any = "cpu",
-    group: str | None = None,
-    shapes: Sequence[str] | None = None,
-):  # noqa: ANN201 - PoseDiffusionModule (imported lazily)
-    """The trained :class:`~posediff.module.PoseDiffusionModule` of a ``posediff fit`` checkpoint, in eval mode.
-
-    ``group`` / ``shapes``: refuse (one line) a checkpoint trained on another group or without
-    those shapes. ``module.config`` holds the stored run configuration.
-    """
+def module_from_checkpoint(ckpt: dict[str, Any], path: str | os.PathLike[str] = "checkpoint"):  # noqa: ANN201
+    """The :class:`~posediff.module.PoseDiffusionModule` of a checkpoint dict already read with
+    :func:`read_checkpoint`, in eval mode, with ``module.config`` set to the stored run config."""
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
@@ -97,9 +89,7 @@ def load_checkpoint(
     from .module import PoseDiffusionModule
 
     register_resolvers()
-    ckpt = read_checkpoint(path, map_location)
     config = ckpt[CONFIG_KEY]
-    check_compatible(config, group=group, shapes=shapes, where=f"checkpoint {path}")
     module_cfg = OmegaConf.create(config["module"])
     if module_cfg.get("encoder") is not None and "weights" in module_cfg.encoder:
         module_cfg.encoder.weights = None  # the checkpoint holds the trained weights; no file needed
@@ -112,6 +102,23 @@ def load_checkpoint(
     return module
 
 
+def load_checkpoint(
+    path: str | os.PathLike[str],
+    *,
+    map_location: Any = "cpu",
+    group: str | None = None,
+    shapes: Sequence[str] | None = None,
+):  # noqa: ANN201 - PoseDiffusionModule (imported lazily)
+    """The trained :class:`~posediff.module.PoseDiffusionModule` of a ``posediff fit`` checkpoint, in eval mode.
+
+    ``group`` / ``shapes``: refuse (one line) a checkpoint trained on another group or without
+    those shapes. ``module.config`` holds the stored run configuration.
+    """
+    ckpt = read_checkpoint(path, map_location)
+    check_compatible(ckpt[CONFIG_KEY], group=group, shapes=shapes, where=f"checkpoint {path}")
+    return module_from_checkpoint(ckpt, path)
+
+
 __all__ = [
     "CONFIG_KEY",
     "CheckpointError",
@@ -119,5 +126,6 @@ __all__ = [
     "checkpoint_group",
     "checkpoint_shapes",
     "load_checkpoint",
+    "module_from_checkpoint",
     "read_checkpoint",
 ]

@@ -281,9 +281,10 @@ def _device(name: str) -> torch.device:
 def _checkpoint_run(cfg: DictConfig) -> tuple[Any, DictConfig]:
     """The module of ``cfg.ckpt_path`` and its run config with the command's ``group`` / ``data`` /
     ``sampler`` choices applied (a data mapping without ``_target_`` overrides single keys)."""
-    from .checkpoint import check_compatible, load_checkpoint, read_checkpoint
+    from .checkpoint import CONFIG_KEY, check_compatible, module_from_checkpoint, read_checkpoint
 
-    config = read_checkpoint(cfg.ckpt_path)["posediff_config"]
+    ckpt = read_checkpoint(cfg.ckpt_path)
+    config = ckpt[CONFIG_KEY]
     run = OmegaConf.create(config)
     data = cfg.get("data")
     if data:
@@ -296,7 +297,7 @@ def _checkpoint_run(cfg: DictConfig) -> tuple[Any, DictConfig]:
         group = str(get_class(cfg.group._target_).name)
     shapes = list(run.data.shapes) if "shapes" in run.data else None
     check_compatible(config, group=group, shapes=shapes, where=f"checkpoint {cfg.ckpt_path}")
-    module = load_checkpoint(cfg.ckpt_path, map_location="cpu")
+    module = module_from_checkpoint(ckpt, cfg.ckpt_path)
     sampler = cfg.get("sampler")
     if sampler:
         s = OmegaConf.to_container(sampler, resolve=True)
