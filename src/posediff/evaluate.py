@@ -24,9 +24,9 @@ import torch
 from torch.utils.data import DataLoader
 
 from .diffusion import Sampler
-from .metrics import mode_coverage, recall
+from .metrics import mode_coverage, recall, rotation_errors_deg, translation_errors
 from .module import PoseDiffusionModule
-from .symmetry import SHAPES, min_angle_to_equivalents
+from .symmetry import SHAPES
 
 #: recall thresholds (paper's SYMSOL-T evaluation: degrees, and scene units)
 ROTATION_THRESHOLDS_DEG = (2.0, 5.0, 10.0)
@@ -107,11 +107,11 @@ def _evaluate(
             sel = batch["shape"] == k
             acc = per_shape.setdefault(shape, {"rot": [], "trans": [], "coverage": []})
             r_gt = batch["rotation"][sel].double()
-            acc["rot"].append(torch.rad2deg(min_angle_to_equivalents(shape, rot[sel], r_gt)).cpu())
+            acc["rot"].append(rotation_errors_deg(shape, rot[sel], r_gt).cpu())
             acc["coverage"].append(mode_coverage(shape, rot[sel], r_gt, coverage_threshold_deg).cpu())
             if has_t:
                 t_s, t_gt = x[sel][..., :3, 3].double(), batch["translation"][sel].double()
-                acc["trans"].append((t_s - t_gt.unsqueeze(-2)).norm(dim=-1).cpu())
+                acc["trans"].append(translation_errors(t_s, t_gt).cpu())
     result: dict[str, Any] = {"shapes": {}}
     order = [s for s in shapes if s in per_shape] + [s for s in per_shape if s not in shapes]
     for shape in order:

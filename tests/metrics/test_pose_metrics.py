@@ -114,3 +114,19 @@ def test_large_batch_is_vectorised() -> None:
     # uniform samples: the mean min angle to 60 modes is well below the uniform mean (~126°)
     assert 20.0 < spread.min() and spread.max() < 60.0
     assert elapsed < 5.0
+
+
+def test_per_sample_errors_average_to_spread_and_translation_error() -> None:
+    from posediff.metrics import rotation_errors_deg, translation_errors
+
+    g = torch.Generator().manual_seed(5)
+    R = SO3().sample_uniform((2, 7), generator=g, dtype=torch.float64)
+    R_gt = SO3().sample_uniform((2,), generator=g, dtype=torch.float64)
+    err = rotation_errors_deg("cube", R, R_gt)
+    assert err.shape == (2, 7) and float(err.max()) <= 62.8 + 1e-6  # the cube's covering radius
+    torch.testing.assert_close(err.mean(-1), rotation_spread_deg("cube", R, R_gt))
+    t = torch.randn(2, 7, 3, generator=g, dtype=torch.float64)
+    t_gt = torch.randn(2, 3, generator=g, dtype=torch.float64)
+    d = translation_errors(t, t_gt)
+    torch.testing.assert_close(d[1, 3], (t[1, 3] - t_gt[1]).norm())
+    torch.testing.assert_close(d.mean(-1), translation_error(t, t_gt))

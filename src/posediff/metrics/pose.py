@@ -20,18 +20,29 @@ from torch import Tensor
 from ..symmetry import is_continuous, min_angle_to_equivalents, symmetry_group
 
 
-def rotation_spread_deg(shape: str, R_samples: Tensor, R_gt: Tensor) -> Tensor:
-    """The paper's "spread": mean over the N samples of the smallest angle (degrees) to the
-    equivalent set of ``R_gt``. ``(…, N, 3, 3), (…, 3, 3) → (…,)``. Exact for cone / cylinder."""
+def rotation_errors_deg(shape: str, R_samples: Tensor, R_gt: Tensor) -> Tensor:
+    """Per sample, the smallest angle (degrees) to the equivalent set of ``R_gt``:
+    ``(…, N, 3, 3), (…, 3, 3) → (…, N)``. Exact for cone / cylinder."""
     R_samples, R_gt = torch.as_tensor(R_samples), torch.as_tensor(R_gt)
-    return torch.rad2deg(min_angle_to_equivalents(shape, R_samples, R_gt)).mean(-1)
+    return torch.rad2deg(min_angle_to_equivalents(shape, R_samples, R_gt))
+
+
+def rotation_spread_deg(shape: str, R_samples: Tensor, R_gt: Tensor) -> Tensor:
+    """The paper's "spread": mean over the N samples of :func:`rotation_errors_deg`,
+    ``(…, N, 3, 3), (…, 3, 3) → (…,)``."""
+    return rotation_errors_deg(shape, R_samples, R_gt).mean(-1)
+
+
+def translation_errors(t_samples: Tensor, t_gt: Tensor) -> Tensor:
+    """Per sample, the Euclidean distance to the ground truth: ``(…, N, 3), (…, 3) → (…, N)``
+    (in the units of ``t``; all symmetric equivalents share the translation)."""
+    t_samples, t_gt = torch.as_tensor(t_samples), torch.as_tensor(t_gt)
+    return (t_samples - t_gt.unsqueeze(-2)).norm(dim=-1)
 
 
 def translation_error(t_samples: Tensor, t_gt: Tensor) -> Tensor:
-    """Mean Euclidean distance of the samples to the ground truth: ``(…, N, 3), (…, 3) → (…,)``
-    (in the units of ``t``; all symmetric equivalents share the translation)."""
-    t_samples, t_gt = torch.as_tensor(t_samples), torch.as_tensor(t_gt)
-    return (t_samples - t_gt.unsqueeze(-2)).norm(dim=-1).mean(-1)
+    """Mean over the N samples of :func:`translation_errors`: ``(…, N, 3), (…, 3) → (…,)``."""
+    return translation_errors(t_samples, t_gt).mean(-1)
 
 
 def mode_coverage(shape: str, R_samples: Tensor, R_gt: Tensor, threshold_deg: float = 5.0) -> Tensor:
