@@ -1,0 +1,315 @@
+"""BOP datasets as per-instance crops: a PyTorch ``Dataset`` and a Lightning ``DataModule``.
+
+As the paper (§5.3) and the authors' code: one sample per ground-truth object instance, the square
+region of interest around its box (Dynamic Zoom-In in training, :mod:`.roi`), resized to
+``image_size``, masked to the instance's visible pixels (the paper assumes ground-truth boxes and
+visible masks, at test too), hard colour augmentation of training crops on the batch
+(:class:`.augment.HardAugment`, kornia), and the pose encoded for the network by
+:class:`.encoding.PoseEncoding` (standardised SITE translation, allocentric or egocentric rotation).
+
+Instances are dropped when their visible box is ≤ 1 px wide or high or they have ≤ ``min_visible_px``
+visible pixels (the authors' 64) or a visible fraction below ``min_visib_fract``; dropped test
+targets are counted (``skipped``) and scored as misses.
+
+A sample is a dict: ``image`` (3, S, S) float32 in [0, 1]; ``mask`` (S, S) bool (visible pixels);
+``pose`` the diffusion target — ``[R_net | δ̂]`` (4, 4) for se3 / r3so3, ``R_net`` (3, 3) for so3;
+``rotation`` (3, 3) and ``translation`` (3,) the camera-frame ground truth (mm); ``K`` (3, 3) the
+image's intrinsics; ``centre`` (2,) and ``side`` () the crop in image pixels; ``obj_id``,
+``scene_id``, ``im_id``, ``gt_idx``, ``index`` (into :attr:`BopInstanceDataset.instances`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch import Tensor, nn
+from torch.utils.data import DataLoader, Dataset
+
+from ...lie import LieGroup, get_group
+from .encoding import PoseEncoding
+from .reader import (
+    BopFormatError,
+    BopModels,
+    BopSplit,
+    Instance,
+    read_mask,
+    read_rgb,
+    read_targets,
+    target_instances,
+)
+from .roi import clip_box, crop, dzi
+
+
+def keep_instance(inst: Instance, min_visible_px: int, min_visib_fract: float) -> bool:
+    """The instance filter (module docstring)."""
+    w, h = inst.bbox_visib[2], inst.bbox_visib[3]
+    return w > 1 and h > 1 and inst.px_count_visib > min_visible_px and inst.visib_fract >= min_visib_fract
+
+
+class BopInstanceDataset(Dataset):
+    """Crops of ``instances`` (map-style). ``train``: DZI jitter (drawn from torch's RNG, which
+    Lightning seeds per worker); otherwise the centred box."""
+
+    def __init__(
+        self,
+        instances: Sequence[Instance],
+        encoding: PoseEncoding,
+        *,
+        image_size: int = 224,
+        train: bool = False,
+        dzi_shift: float = 0.25,
+        dzi_scale: float = 0.25,
+        dzi_pad: float = 1.5,
+        rotation_only: bool = False,
+    ) -> None:
+        self.instances = list(instances)
+        self.encoding = encoding
+        self.image_size = int(image_size)
+        self.train = train
+        self.dzi = {"shift": dzi_shift, "scale": dzi_scale, "pad": dzi_pad}
+        self.rotation_only = rotation_only
+
+    def __len__(self) -> int:
+        return len(self.instances)
+
+    def box(self, inst: Instance, rng: np.random.Generator | None) -> tuple[np.ndarray, float]:
+        """The crop ``(centre, side)`` of an instance (its object box; clipped to the image in training)."""
+        bbox = clip_box(inst.bbox_obj, inst.image_hw) if self.train else inst.bbox_obj
+        return dzi(bbox, inst.image_hw, rng=rng, **self.dzi)
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        inst = self.instances[i]
+        rng = np.random.default_rng(int(torch.randint(0, 2**62, ()))) if self.train else None
+        centre, side = self.box(inst, rng)
+        S = self.image_size
+        rgb = crop(read_rgb(inst.rgb_path), centre, side, S)
+        mask = crop(read_mask(inst.mask_visib_path), centre, side, S, nearest=True)
+        image = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))).float().div_(255.0)
+        mask_t = torch.from_numpy(mask)
+        image = image * mask_t
+        R = torch.from_numpy(inst.R).float()
+        t = torch.from_numpy(inst.t).float()
+        K = torch.from_numpy(inst.K).float()
+        c = torch.from_numpy(np.asarray(centre)).float()
+        s = torch.tensor(float(side))
+        R_net, delta = self.encoding.encode(R.double(), t.double(), K.double(), c.double(), s.double(), S)
+        if self.rotation_only:
+            pose = R_net.float()
+        else:
+            pose = torch.eye(4)
+            pose[:3, :3], pose[:3, 3] = R_net.float(), delta.float()
+        return {
+            "image": image,
+            "mask": mask_t,
+            "pose": pose,
+            "rotation": R,
+            "translation": t,
+            "K": K,
+            "centre": c,
+            "side": s,
+            "obj_id": torch.tensor(inst.obj_id),
+            "scene_id": torch.tensor(inst.scene_id),
+            "im_id": torch.tensor(inst.im_id),
+            "gt_idx": torch.tensor(inst.gt_idx),
+            "index": torch.tensor(i),
+        }
+
+
+class BopDataModule(L.LightningDataModule):
+    """A BOP dataset (T-LESS by default) for ``posediff fit`` / ``eval``.
+
+    Args:
+        root: the dataset folder (``models/``, the split folders, the targets file).
+        train_splits: concatenated for training, sampled uniformly over instances (T-LESS: PBR + real).
+        test_split: the split of :attr:`targets`.
+        targets: the targets file in ``root`` (``null``: every test instance with visib_fract ≥ 0.1).
+        models_dir, eval_models_dir: model folders in ``root`` (real T-LESS: ``models_cad``).
+        obj_ids: the objects to use (``null``: all in ``models_info.json``).
+        image_size: crop size (paper: 224).
+        dzi_shift, dzi_scale, dzi_pad: Dynamic Zoom-In (paper / authors: 0.25, 0.25, 1.5).
+        augment: a module for training batches (``HardAugment``) or ``null``.
+        min_visible_px, min_visib_fract: the instance filter (module docstring).
+        rotation: ``allocentric`` | ``egocentric``.
+        translation_stats: ``{mean: [3], std: [3]}`` of the raw SITE translation; ``null`` computes
+            them from the training split (``posediff fit`` stores them in the checkpoint's config).
+        group: ``se3`` / ``r3so3`` (pose ``[R | δ̂]``) or ``so3`` (rotation only).
+        max_train_instances: train on at most this many instances (the first, after filtering).
+        max_test_instances: score at most this many test targets (the first).
+    """
+
+    def __init__(
+        self,
+        root: str,
+        *,
+        train_splits: Sequence[str] = ("train_pbr", "train_primesense"),
+        test_split: str = "test_primesense",
+        targets: str | None = "test_targets_bop19.json",
+        models_dir: str = "models",
+        eval_models_dir: str = "models_eval",
+        obj_ids: Sequence[int] | None = None,
+        image_size: int = 224,
+        dzi_shift: float = 0.25,
+        dzi_scale: float = 0.25,
+        dzi_pad: float = 1.5,
+        augment: nn.Module | None = None,
+        min_visible_px: int = 64,
+        min_visib_fract: float = 0.0,
+        rotation: str = "allocentric",
+        translation_stats: dict[str, Sequence[float]] | None = None,
+        group: LieGroup | str = "se3",
+        seed: int = 0,
+        batch_size: int = 32,
+        num_workers: int = 0,
+        max_train_instances: int | None = None,
+        max_test_instances: int | None = None,
+    ) -> None:
+        super().__init__()
+        self.group = get_group(group) if isinstance(group, str) else group
+        if self.group.name not in ("so3", "se3", "r3so3"):
+            raise ValueError(
+                f"BOP poses need a 3-D rotation group (so3, se3, r3so3), not {self.group.name!r}"
+            )
+        if not root:
+            raise ValueError(
+                "data.root is not set: point it at a BOP dataset folder (posediff data make-bop out=DIR makes one)"
+            )
+        self.root = Path(str(root))
+        self.train_splits, self.test_split, self.targets_file = list(train_splits), test_split, targets
+        self.models = BopModels(self.root, models_dir, eval_models_dir)
+        self.obj_ids = None if obj_ids is None else [int(o) for o in obj_ids]
+        if self.obj_ids is not None:
+            self.models.check(self.obj_ids, "data.obj_ids")
+        self.image_size = int(image_size)
+        self.dzi = {"dzi_shift": dzi_shift, "dzi_scale": dzi_scale, "dzi_pad": dzi_pad}
+        self.augment = augment
+        self.min_visible_px, self.min_visib_fract = int(min_visible_px), float(min_visib_fract)
+        stats = dict(translation_stats) if translation_stats else {}
+        self.encoding = PoseEncoding(rotation, stats.get("mean"), stats.get("std"))
+        self.seed, self.batch_size, self.num_workers = int(seed), int(batch_size), int(num_workers)
+        self.max_train, self.max_test = max_train_instances, max_test_instances
+        self.rotation_only = self.group.matrix_dim == 3
+        self.train: BopInstanceDataset | None = None
+        self.test: BopInstanceDataset | None = None
+        #: test targets dropped by the instance filter (scored as misses)
+        self.skipped: list[Instance] = []
+        #: all test targets (ground-truth instances the protocol scores)
+        self.targets: list[Instance] = []
+        self.summary: dict[str, Any] = {}
+
+    @property
+    def shapes(self) -> list[str]:
+        """Object names (``obj_000001`` …), the rows of the per-object tables."""
+        return [f"obj_{o:06d}" for o in (self.obj_ids or self.models.obj_ids)]
+
+    def _dataset(self, instances: list[Instance], train: bool) -> BopInstanceDataset:
+        return BopInstanceDataset(
+            instances,
+            self.encoding,
+            image_size=self.image_size,
+            train=train,
+            rotation_only=self.rotation_only,
+            **{k.removeprefix("dzi_"): v for k, v in self.dzi.items()},
+        )
+
+    def _train_instances(self) -> list[Instance]:
+        instances: list[Instance] = []
+        for split in self.train_splits:
+            instances.extend(BopSplit(self.root, split, self.models, obj_ids=self.obj_ids).instances)
+        kept = [i for i in instances if keep_instance(i, self.min_visible_px, self.min_visib_fract)]
+        self.summary["train"] = {"instances": len(instances), "kept": len(kept), "splits": self.train_splits}
+        if not kept:
+            raise BopFormatError(
+                f"no training instances in {self.root} / {self.train_splits} pass the filter"
+            )
+        return kept[: self.max_train] if self.max_train else kept
+
+    def fit_translation_stats(self, instances: Sequence[Instance], draws: int = 4) -> None:
+        """Statistics of the raw SITE translation over the training instances under the training
+        crops' DZI jitter (``draws`` crops each, seeded): what the network sees, standardised."""
+        rng = np.random.default_rng(self.seed)
+        ds = self._dataset(list(instances), train=True)
+        t, K, c, s = [], [], [], []
+        for inst in instances:
+            for _ in range(draws):
+                centre, side = ds.box(inst, rng)
+                t.append(inst.t), K.append(inst.K), c.append(centre), s.append(side)
+        T = torch.from_numpy
+        raw = PoseEncoding.raw_translation(
+            T(np.stack(t)),
+            T(np.stack(K)),
+            T(np.stack(c)),
+            torch.tensor(s, dtype=torch.float64),
+            self.image_size,
+        )
+        self.encoding.fit_stats(raw)
+
+    def _test_instances(self) -> list[Instance]:
+        split = self.root / self.test_split
+        if self.targets_file:
+            path = self.root / self.targets_file
+            targets = [t for t in read_targets(path) if self.obj_ids is None or t.obj_id in self.obj_ids]
+            self.models.check({t.obj_id for t in targets}, str(path))
+            images = {(t.scene_id, t.im_id) for t in targets}
+            all_inst = BopSplit(self.root, self.test_split, self.models, obj_ids=self.obj_ids, images=images)
+            found = {(i.scene_id, i.im_id) for i in all_inst.instances}
+            missing = sorted(images - found)
+            if missing:
+                raise BopFormatError(f"{path} names images {missing[:3]}… that {split} does not have")
+            self.targets = target_instances(all_inst.instances, targets)
+        else:
+            all_inst = BopSplit(self.root, self.test_split, self.models, obj_ids=self.obj_ids)
+            self.targets = [i for i in all_inst.instances if i.visib_fract >= 0.1]
+        if self.max_test:
+            self.targets = self.targets[: self.max_test]
+        kept = [i for i in self.targets if keep_instance(i, self.min_visible_px, 0.0)]
+        self.skipped = [i for i in self.targets if not keep_instance(i, self.min_visible_px, 0.0)]
+        self.summary["test"] = {"targets": len(self.targets), "kept": len(kept), "skipped": len(self.skipped)}
+        return kept
+
+    def setup(self, stage: str | None = None) -> None:
+        if stage in (None, "fit") and self.train is None:
+            train = self._train_instances()
+            if not self.encoding.fitted:
+                self.fit_translation_stats(train)
+            self.train = self._dataset(train, train=True)
+        if stage in (None, "fit", "validate", "test", "predict") and self.test is None:
+            if not self.encoding.fitted:
+                raise BopFormatError(
+                    "the translation statistics are unknown: evaluate a checkpoint made by posediff fit "
+                    "(it stores them) or set data.translation_stats={mean: [...], std: [...]}"
+                )
+            self.test = self._dataset(self._test_instances(), train=False)
+
+    def on_after_batch_transfer(self, batch: dict[str, Tensor], dataloader_idx: int) -> dict[str, Tensor]:
+        """Augment training crops on the device, then mask them to the visible pixels again."""
+        if self.augment is not None and self.trainer is not None and self.trainer.training:
+            batch["image"] = self.augment(batch["image"]) * batch["mask"][:, None]
+        return batch
+
+    def _loader(self, ds: Dataset, shuffle: bool) -> DataLoader:
+        return DataLoader(
+            ds,
+            batch_size=self.batch_size,
+            shuffle=shuffle,
+            num_workers=self.num_workers,
+            persistent_workers=False,
+            drop_last=shuffle and len(ds) >= self.batch_size,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        assert self.train is not None, "call setup() first"
+        return self._loader(self.train, shuffle=True)
+
+    def test_dataloader(self) -> DataLoader:
+        assert self.test is not None, "call setup() first"
+        return self._loader(self.test, shuffle=False)
+
+    val_dataloader = test_dataloader
+
+
+__all__ = ["BopDataModule", "BopInstanceDataset", "keep_instance"]

@@ -1,0 +1,81 @@
+"""Region-of-interest crops: the square box around an object, Dynamic Zoom-In, and the crop itself.
+
+Dynamic Zoom-In (DZI; Li et al., CDPN, ICCV 2019, with the settings of the authors' code,
+``../shared/docs/reference-implementation.md`` §9.3), for a box ``[x, y, w, h]`` with centre ``c``:
+
+* training: centre ``c + (w·u₁, h·u₂)``, ``u ~ U[−shift, shift]``; side
+  ``s = max(w, h)·(1 + scale·U[−1, 1])·pad`` (shift = scale = 0.25, pad = 1.5: 1.125–1.875 × max(w, h));
+* test: centre ``c``, side ``pad·max(w, h)``;
+
+the side is clipped to ``max(H, W)`` of the image. The ``s × s`` square is resampled to
+``out × out`` (bilinear for the image, nearest for masks; outside the image is black / empty), which is
+a camera with the same centre and the intrinsics :func:`crop_intrinsics` — focal length × r and
+principal point ``(c_K − (centre − s/2))·r``, ``r = out / s`` (the zoom).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def dzi(
+    bbox: np.ndarray,
+    image_hw: tuple[int, int],
+    *,
+    rng: np.random.Generator | None = None,
+    shift: float = 0.25,
+    scale: float = 0.25,
+    pad: float = 1.5,
+) -> tuple[np.ndarray, float]:
+    """``(centre (2,), side)`` of the square crop of ``bbox = [x, y, w, h]`` (module docstring);
+    jittered when ``rng`` is given (training), centred otherwise (test)."""
+    x, y, w, h = (float(v) for v in np.asarray(bbox, dtype=np.float64).reshape(4))
+    centre = np.array([x + 0.5 * w, y + 0.5 * h])
+    side = max(w, h)
+    if rng is not None:
+        centre = centre + np.array([w, h]) * rng.uniform(-shift, shift, size=2)
+        side = side * (1.0 + scale * rng.uniform(-1.0, 1.0))
+    side = min(side * pad, float(max(image_hw)))
+    return centre, max(side, 1.0)
+
+
+def clip_box(bbox: np.ndarray, image_hw: tuple[int, int]) -> np.ndarray:
+    """``[x, y, w, h]`` clipped to the image (the authors clip the training box)."""
+    x, y, w, h = np.asarray(bbox, dtype=np.float64).reshape(4)
+    H, W = image_hw
+    x1, y1 = np.clip([x, y], 0, [W, H])
+    x2, y2 = np.clip([x + w, y + h], 0, [W, H])
+    return np.array([x1, y1, max(x2 - x1, 0.0), max(y2 - y1, 0.0)])
+
+
+def crop_matrix(centre: np.ndarray, side: float, out: int) -> np.ndarray:
+    """The 2×3 affine map from image pixels to crop pixels (no rotation).
+
+    Pixel centres follow OpenCV (pixel ``i`` covers ``[i − ½, i + ½]``): the square's corner
+    ``centre − s/2`` maps to the crop's corner ``−½``, and ``centre`` to the crop's centre ``(out − 1)/2``."""
+    r = out / float(side)
+    x0, y0 = np.asarray(centre, dtype=np.float64) - 0.5 * side
+    return np.array([[r, 0.0, -r * x0 - 0.5], [0.0, r, -r * y0 - 0.5]])
+
+
+def crop_intrinsics(K: np.ndarray, centre: np.ndarray, side: float, out: int) -> np.ndarray:
+    """The intrinsics of the crop: ``A·K`` with ``A`` the crop's pixel map (module docstring)."""
+    A = np.eye(3)
+    A[:2] = crop_matrix(centre, side, out)
+    return A @ np.asarray(K, dtype=np.float64)
+
+
+def crop(
+    image: np.ndarray, centre: np.ndarray, side: float, out: int, *, nearest: bool = False
+) -> np.ndarray:
+    """The ``out × out`` crop of ``image (H, W[, C])`` (bilinear, or nearest for masks)."""
+    import cv2
+
+    M = crop_matrix(centre, side, out)
+    flags = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    src = image.astype(np.uint8) if image.dtype == bool else image
+    res = cv2.warpAffine(src, M, (out, out), flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return res.astype(bool) if image.dtype == bool else res
+
+
+__all__ = ["clip_box", "crop", "crop_intrinsics", "crop_matrix", "dzi"]
