@@ -245,7 +245,7 @@ def test_demo_command(
     quick = ["trainer.max_steps=2", "eval.num_samples=4", "data.n_per_shape_test=1", "module.num_noisy=8"]
     assert main(["demo", "out=demo", "trainer.enable_progress_bar=false", *quick]) == 0
     out = capsys.readouterr().out
-    assert "spread before (°)" in out and "t err after" in out and "demo finished in" in out
+    assert "spread (°) before" in out and "t err after" in out and "demo finished in" in out
     for shape in ("tet", "cube", "cyl"):
         assert (tmp_path / "demo" / f"predict_{shape}" / "so3.png").is_file()
     assert (tmp_path / "demo" / "predict_tet" / "trajectory.png").is_file()

@@ -22,8 +22,14 @@ from omegaconf import DictConfig
 
 from ._io import atomic_write_json, atomic_write_text
 
-#: (metric key, column header) in table order; absent keys are skipped
+#: (metric key, column header) in table order; absent keys are skipped. BOP evaluations
+#: (:mod:`posediff.evaluate_bop`) fill the paper's Table 3 columns: MSPD, MSSD, VSD (BOP19 average
+#: recalls), R@2/5/10°, T@2/5/10 cm; their per-axis recalls go to :func:`axis_table`.
 COLUMNS: tuple[tuple[str, str], ...] = (
+    ("AR_MSPD", "MSPD"),
+    ("AR_MSSD", "MSSD"),
+    ("AR_VSD", "VSD"),
+    ("AR", "AR"),
     ("spread_deg", "spread (°)"),
     ("recall_rot@2", "R@2°"),
     ("recall_rot@5", "R@5°"),
@@ -32,7 +38,14 @@ COLUMNS: tuple[tuple[str, str], ...] = (
     ("recall_trans@0.02", "T@0.02"),
     ("recall_trans@0.05", "T@0.05"),
     ("recall_trans@0.1", "T@0.1"),
+    ("recall_trans@2cm", "T@2cm"),
+    ("recall_trans@5cm", "T@5cm"),
+    ("recall_trans@10cm", "T@10cm"),
     ("coverage", "coverage"),
+)
+#: the paper's per-axis translation recalls (its Table 7)
+AXIS_COLUMNS: tuple[tuple[str, str], ...] = tuple(
+    (f"recall_{a}@{c}cm", f"{a}@{c}cm") for a in "xyz" for c in (2, 5, 10)
 )
 
 
@@ -55,17 +68,34 @@ def _columns(rows: Sequence[dict[str, Any]]) -> list[tuple[str, str]]:
 
 
 def run_table(result: dict[str, Any]) -> str:
-    """Markdown: one row per shape and an ``overall`` row (mean over shapes) of one evaluation."""
+    """Markdown: one row per shape (object) and an ``overall`` row of one evaluation (mean over shapes;
+    for BOP, recall over all targets), and for BOP the per-axis table."""
     rows = [*result["shapes"].items(), ("overall", result["overall"])]
     cols = _columns([m for _, m in rows])
-    header = ["shape", *(h for _, h in cols)]
+    header = ["object" if result.get("kind") == "bop" else "shape", *(h for _, h in cols)]
     body = [[shape, *(_fmt(m.get(k)) for k, _ in cols)] for shape, m in rows]
     steps = result.get("num_steps")
     title = (
         f"{result.get('sampler', 'sampler')}, {steps} steps, {result.get('num_samples')} hypotheses per "
-        f"image, {result.get('inputs', '?')} images; {result.get('seconds_per_input', math.nan):.3f} s per image\n\n"
+        f"input, {result.get('inputs', '?')} inputs; {result.get('seconds_per_input', math.nan):.3f} s per input\n\n"
     )
-    return title + _markdown(header, body)
+    if result.get("kind") != "bop":
+        return title + _markdown(header, body)
+    note = (
+        f"BOP19 protocol: {result.get('targets')} targets, {result.get('skipped')} without an estimate "
+        f"(too few visible pixels: scored as misses){'' if result.get('vsd', True) else '; VSD not computed'}; "
+        "recalls in [0, 1]\n\n"
+    )
+    return title + note + _markdown(header, body) + "\nper-axis translation recall\n\n" + axis_table(result)
+
+
+def axis_table(result: dict[str, Any]) -> str:
+    """Markdown: the per-axis translation recalls x/y/z@2/5/10 cm per object and overall."""
+    rows = [*result["shapes"].items(), ("overall", result["overall"])]
+    cols = [(k, h) for k, h in AXIS_COLUMNS if any(k in m for _, m in rows)]
+    return _markdown(
+        ["object", *(h for _, h in cols)], [[s, *(_fmt(m.get(k)) for k, _ in cols)] for s, m in rows]
+    )
 
 
 def sweep_rows(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -151,4 +181,13 @@ class ReportCallback(Callback):
         print(f"report: {sweep_dir / 'report.md'}")
 
 
-__all__ = ["COLUMNS", "ReportCallback", "collect_sweep", "run_table", "sweep_rows", "sweep_table"]
+__all__ = [
+    "AXIS_COLUMNS",
+    "COLUMNS",
+    "ReportCallback",
+    "axis_table",
+    "collect_sweep",
+    "run_table",
+    "sweep_rows",
+    "sweep_table",
+]

@@ -91,7 +91,6 @@ def fit(cfg: DictConfig) -> int:
     import lightning as L
 
     from ._io import atomic_write_json, atomic_write_text
-    from .evaluate import evaluate
     from .module import PoseDiffusionModule
 
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
@@ -124,20 +123,23 @@ def fit(cfg: DictConfig) -> int:
         callbacks.append(instantiate(cfg.ema))
     trainer = instantiate(cfg.trainer, callbacks=callbacks)
     datamodule.setup("fit")
-    shapes = list(getattr(datamodule, "shapes", []))
+    encoding = getattr(datamodule, "encoding", None)
+    if encoding is not None:  # BOP: statistics of the training split, needed to decode at evaluation
+        module.config["data"]["translation_stats"] = encoding.stats()
+        print(f"translation statistics (training split): {encoding.stats()}")
     results: dict[str, Any] = {"experiment": _experiment_name(), "diffusion": module.diffusion.describe()}
     rank0 = int(os.environ.get("LOCAL_RANK", "0")) == 0 and int(os.environ.get("NODE_RANK", "0")) == 0
     if cfg.eval.before and rank0:  # DDP ranks > 0 re-run this function; they only train
         module.to(trainer.strategy.root_device)
-        results["before"] = evaluate(
+        results["before"] = _evaluate(
             module,
-            datamodule.test_dataloader(),
-            shapes,
+            datamodule,
             num_samples=int(cfg.eval.num_samples),
             num_steps=int(max(cfg.eval.num_steps)),
             seed=int(cfg.eval.seed),
         )
-        print(f"before training: spread {results['before']['overall'].get('spread_deg', float('nan')):.2f}°")
+        results["before"].pop("estimates", None)
+        print(f"before training: {_headline(results['before'])}")
     start = time.perf_counter()
     trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
     if not trainer.is_global_zero:
@@ -155,15 +157,18 @@ def fit(cfg: DictConfig) -> int:
         sampler = instantiate(sampler_cfg)(module.diffusion) if sampler_cfg is not None else None
         results["after"][name] = {}
         for steps in cfg.eval.num_steps:
-            results["after"][name][str(int(steps))] = evaluate(
+            res = _evaluate(
                 module,
-                datamodule.test_dataloader(),
-                shapes,
+                datamodule,
                 num_samples=int(cfg.eval.num_samples),
                 num_steps=int(steps),
                 sampler=sampler,
                 seed=int(cfg.eval.seed),
             )
+            csv = _write_bop_csv(res, datamodule, out_dir, f"{name}_{int(steps)}steps")
+            if csv is not None:
+                print(f"BOP19 estimates: {csv}")
+            results["after"][name][str(int(steps))] = res
     json.dumps(results)  # fail here, before writing, if something is not serialisable
     text = _results_markdown(results)
     atomic_write_text(out_dir / "metrics.md", text)
@@ -171,6 +176,43 @@ def fit(cfg: DictConfig) -> int:
     print(text)
     print(f"metrics: {path} (and metrics.md)")
     return 0
+
+
+def _evaluate(module: Any, datamodule: Any, **kwargs: Any) -> dict[str, Any]:
+    """``evaluate_bop`` for a BOP data module, else ``evaluate`` over its test loader and shapes."""
+    from .data.bop import BopDataModule
+
+    if isinstance(datamodule, BopDataModule):
+        from .evaluate_bop import evaluate_bop
+
+        return evaluate_bop(module, datamodule, **kwargs)
+    from .evaluate import evaluate
+
+    return evaluate(module, datamodule.test_dataloader(), list(getattr(datamodule, "shapes", [])), **kwargs)
+
+
+def _write_bop_csv(result: dict[str, Any], datamodule: Any, out_dir: Path, tag: str = "") -> Path | None:
+    """Move a BOP evaluation's estimates out of ``result`` into a BOP19 results CSV in ``out_dir``
+    (``posediff-<tag>_<dataset>-<split>.csv``, the toolkit's ``METHOD_DATASET-SPLIT`` naming)."""
+    rows = result.pop("estimates", None)
+    if rows is None:
+        return None
+    from .metrics.bop19 import write_bop19_csv
+
+    dataset = datamodule.root.name.replace("_", "")
+    split = datamodule.test_split.split("_")[0]
+    method = "posediff" + (f"-{tag.replace('_', '-')}" if tag else "")
+    path = write_bop19_csv(out_dir / f"{method}_{dataset}-{split}.csv", rows)
+    result["bop19_csv"] = str(path)
+    return Path(path)
+
+
+def _headline(result: dict[str, Any]) -> str:
+    """The one number of an evaluation: the spread (SYMSOL, toy) or the BOP19 average recall."""
+    o, nan = result.get("overall", {}), float("nan")
+    if result.get("kind") == "bop":
+        return f"BOP19 AR {o.get('AR', nan):.3f} over {result.get('targets')} targets"
+    return f"spread {o.get('spread_deg', nan):.2f}°"
 
 
 def _experiment_name() -> str:
@@ -200,18 +242,21 @@ def _results_markdown(results: dict[str, Any]) -> str:
     after = [(name, steps, res) for name, by in results.get("after", {}).items() for steps, res in by.items()]
     if "before" in results and after:
         b, (name, steps, a) = results["before"], after[-1]
-        has_t = "translation_error" in a["overall"]
-        head = "| shape | spread before (°) | spread after (°) |" + (
-            " t err before | t err after |" if has_t else ""
-        )
-        lines = [head, "|---|---|---|" + ("---|---|" if has_t else "")]
+        if a.get("kind") == "bop":
+            cols = [("AR", "AR"), ("recall_rot@5", "R@5°"), ("recall_trans@5cm", "T@5cm")]
+        else:
+            cols = [("spread_deg", "spread (°)"), ("translation_error", "t err")]
+        cols = [(k, h) for k, h in cols if k in a["overall"]]
+        head = "| shape |" + "".join(f" {h} before | {h} after |" for _, h in cols)
+        lines = [head, "|---|" + "---|---|" * len(cols)]
         nan = float("nan")
         for shape in [*a["shapes"], "overall"]:
             mb = b["overall"] if shape == "overall" else b["shapes"].get(shape, {})
             ma = a["overall"] if shape == "overall" else a["shapes"][shape]
-            row = f"| {shape} | {mb.get('spread_deg', nan):.1f} | {ma['spread_deg']:.1f} |"
-            if has_t:
-                row += f" {mb.get('translation_error', nan):.3f} | {ma.get('translation_error', nan):.3f} |"
+            row = f"| {shape} |"
+            for k, _ in cols:
+                digits = 1 if k == "spread_deg" else 3
+                row += f" {mb.get(k, nan):.{digits}f} | {ma.get(k, nan):.{digits}f} |"
             lines.append(row)
         parts.append(f"untrained vs trained ({name}, {steps} steps):\n\n" + "\n".join(lines) + "\n")
     if "before" in results:
@@ -323,7 +368,6 @@ def evaluate_checkpoint(cfg: DictConfig) -> int:
     ``metrics.md`` in the run folder. Step counts are a sampler option (``sampler.num_steps``)."""
     from ._io import atomic_write_json, atomic_write_text
     from .checkpoint import CheckpointError
-    from .evaluate import evaluate
     from .report import run_table
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
@@ -337,16 +381,15 @@ def evaluate_checkpoint(cfg: DictConfig) -> int:
         print(f"posediff eval: {e}", file=sys.stderr)
         return 2
     module.to(device)
-    shapes = list(getattr(datamodule, "shapes", []))
-    result = evaluate(
+    result = _evaluate(
         module,
-        datamodule.test_dataloader(),
-        shapes,
+        datamodule,
         num_samples=int(cfg.num_samples),
         num_steps=None,
         seed=int(cfg.seed),
         max_inputs=cfg.max_inputs,
     )
+    _write_bop_csv(result, datamodule, out_dir)
     result.update(
         ckpt_path=str(cfg.ckpt_path),
         device=str(device),
@@ -358,6 +401,8 @@ def evaluate_checkpoint(cfg: DictConfig) -> int:
     atomic_write_text(out_dir / "metrics.md", table)
     print(table)
     print(f"metrics: {out_dir / 'metrics.json'}")
+    if "bop19_csv" in result:
+        print(f"BOP19 estimates: {result['bop19_csv']} (for the BOP toolkit's eval_bop19_pose.py)")
     return 0
 
 

@@ -1,2 +1,26 @@
-"""BOP-format datasets (T-LESS and any other BOP dataset): the reader, the RoI pipeline, a renderer
-for object meshes and a small BOP-format fixture the project makes itself."""
+"""BOP-format datasets (T-LESS and any other BOP dataset): the reader (:mod:`.reader`), region-of-interest
+crops with Dynamic Zoom-In (:mod:`.roi`), the network's pose encoding (:mod:`.encoding`), kornia
+augmentation (:mod:`.augment`), per-instance datasets and the Lightning data module
+(:mod:`.datamodule`), a renderer for object meshes (:mod:`.render`) and the BOP-format fixture
+``posediff data make-bop`` writes (:mod:`.fixture`)."""
+
+from .augment import HardAugment
+from .datamodule import BopDataModule, BopInstanceDataset, keep_instance
+from .encoding import PoseEncoding, allocentric_rotation
+from .reader import BopFormatError, BopModels, BopSplit, Instance, Target, read_targets, target_instances
+
+__all__ = [
+    "BopDataModule",
+    "BopFormatError",
+    "BopInstanceDataset",
+    "BopModels",
+    "BopSplit",
+    "HardAugment",
+    "Instance",
+    "PoseEncoding",
+    "Target",
+    "allocentric_rotation",
+    "keep_instance",
+    "read_targets",
+    "target_instances",
+]
