@@ -125,12 +125,12 @@ def target_errors(
     targets: Sequence[Instance] | None = None,
     *,
     vsd: bool = True,
-    vsd_delta: float = bop19.VSD_DELTA_MM,
+    vsd_delta: float = bop19.BOP19.vsd_delta,
 ) -> list[dict[str, Any]]:
     """One record per target (``targets``, default ``datamodule.targets``): its errors, NaN where
     there is no estimate."""
     depths = _Depths(datamodule) if vsd else None
-    nan_vsd = [math.nan] * len(bop19.VSD_TAUS)
+    nan_vsd = [math.nan] * len(bop19.BOP19.vsd_taus)
     records = []
     try:
         for inst in datamodule.targets if targets is None else targets:
@@ -150,7 +150,7 @@ def target_errors(
             if depths is None:
                 rec["vsd"] = nan_vsd
             elif not bop.sphere_projections_overlap(0.5 * d, t, inst.t):
-                rec["vsd"] = [1.0] * len(bop19.VSD_TAUS)
+                rec["vsd"] = [1.0] * len(bop19.BOP19.vsd_taus)
             else:
                 rec["vsd"] = bop.vsd(
                     depths(inst, R, t),
@@ -158,7 +158,7 @@ def target_errors(
                     read_depth(inst.depth_path, inst.depth_scale),
                     inst.K,
                     vsd_delta,
-                    bop19.VSD_TAUS,
+                    bop19.BOP19.vsd_taus,
                     d,
                 )
             records.append(rec)
@@ -200,8 +200,12 @@ def _recalls(
         )
     frac = len(est) / n  # the recalls of pose_recalls are over the estimated targets; misses count as wrong
     for name, value in rec.items():
-        row[name] = float(value) * frac
+        row[_KEYS[name[0]] + name[1:]] = float(value) * frac
     return row
+
+
+#: ``pose_recalls``' names → the report's metric keys (``R@2`` → ``recall_rot@2``, ``x@2cm`` → ``recall_x@2cm``)
+_KEYS = {"R": "recall_rot", "T": "recall_trans", "x": "recall_x", "y": "recall_y", "z": "recall_z"}
 
 
 def evaluate_bop(

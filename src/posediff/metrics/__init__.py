@@ -17,3 +17,25 @@ __all__ = [
     "mode_coverage",
     "recall",
 ]
+
+from .bop import sphere_projections_overlap  # noqa: E402
+from .bop19 import (  # noqa: E402
+    BOP19,
+    BopEstimate,
+    ar_from_paired_errors,
+    average_recall,
+    pose_recalls,
+    read_bop19_csv,
+    write_bop19_csv,
+)
+
+__all__ += [
+    "sphere_projections_overlap",
+    "BOP19",
+    "BopEstimate",
+    "ar_from_paired_errors",
+    "average_recall",
+    "pose_recalls",
+    "read_bop19_csv",
+    "write_bop19_csv",
+]

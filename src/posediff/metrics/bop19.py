@@ -1,0 +1,597 @@
+"""The BOP19 evaluation protocol (Hodaň et al., "BOP Challenge 2020 on 6D Object Localization",
+ECCVW 2020; as the BOP toolkit's ``eval_bop19_pose.py`` defines it), on errors from
+:mod:`posediff.metrics.bop`, plus the paper's pose recalls and the BOP19 results CSV.
+
+**Thresholds** (:data:`BOP19`). An estimate is correct w.r.t. a ground truth iff its error is
+STRICTLY below the threshold:
+
+* VSD (τ = 0.05, 0.10, …, 0.50 of the diameter, δ = 15 mm, 5 mm for ITODD): correct iff
+  ``e_VSD(τ) < θ`` with θ = 0.05, …, 0.50 — 10 τ × 10 θ = 100 recalls.
+* MSSD: correct iff ``e_MSSD / diameter < k`` with k = 0.05, …, 0.50 — 10 recalls.
+* MSPD: correct iff ``e_MSPD · 640 / w < k`` with k = 5, 10, …, 50 px and w the image width in pixels
+  — the pixel threshold is ``k · w / 640`` (5.625 px at k = 5 for w = 720), i.e. the error is
+  normalised to a 640-pixel-wide image — 10 recalls.
+
+**Targets.** A ground-truth (GT) instance is a target iff ``visib_fract ≥ 0.1``. Other instances are
+ignored: they are not counted, and cannot be matched (so an estimate landing on one is neither a hit
+nor penalised — recall has no false-positive term anyway).
+
+**Matching** (:func:`match`), separately for each threshold (each (τ, θ) pair for VSD) and each
+(scene, image, object): only the ``inst_count`` estimates with the highest scores are considered
+(``inst_count`` = the number of targets of that object in that image); in decreasing score (ties
+keep the input order), each estimate is matched to the not-yet-matched target with the smallest
+error among those whose error is below the threshold (ties: the first such target).
+
+**Recall** for one threshold = matched targets / all targets of the dataset (a target without any
+estimate is a miss); ``AR_VSD``, ``AR_MSSD``, ``AR_MSPD`` = the mean of their recalls (100, 10, 10),
+``AR`` = their mean. The toolkit pools all targets of the dataset into ONE recall per threshold
+(a micro-average: objects with many targets weigh more), it does not average per-object recalls;
+the per-object recalls (and their plain mean, ``AR_obj_mean``) are reported next to it but are no part
+of the BOP score. With no target at all a recall is 0 (as the toolkit's).
+
+**Paired errors** (:func:`ar_from_paired_errors`): posediff predicts one pose per GT crop, so each
+target has at most one estimate, scored against its own GT only. With one instance per object and
+image this is exactly the toolkit's matching; with several instances of one object the toolkit could
+also match an estimate to a sibling instance (see :func:`average_recall` for full error matrices).
+
+Units: translations and distances in mm (BOP), MSPD in pixels, angles in degrees.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from .._io import atomic_write_text
+from .bop import _np
+
+
+def _steps(step: float, n: int = 10) -> tuple[float, ...]:
+    return tuple(round(step * k, 10) for k in range(1, n + 1))
+
+
+@dataclass(frozen=True)
+class Bop19Protocol:
+    """The BOP19 thresholds (module docstring). The toolkit builds them with ``np.arange``, whose values
+    differ from these decimals in the last bits (e.g. 0.15000000000000002), which only matters for
+    errors within ~1e-16 of a threshold."""
+
+    vsd_taus: tuple[float, ...] = _steps(0.05)  # misalignment tolerance, fraction of the diameter
+    vsd_thetas: tuple[float, ...] = _steps(0.05)  # correctness threshold on e_VSD
+    vsd_delta: float = 15.0  # visibility tolerance, mm (T-LESS and most datasets; ITODD: 5)
+    mssd_thresholds: tuple[float, ...] = _steps(0.05)  # fractions of the object diameter
+    mspd_thresholds: tuple[float, ...] = _steps(5.0)  # px for a 640-pixel-wide image
+    reference_width: float = 640.0
+    visib_gt_min: float = 0.1  # minimum visible fraction of a target
+    max_sym_disc_step: float = 0.01  # for posediff.metrics.bop.symmetry_transforms
+
+    def mspd_thresholds_px(self, image_width: float) -> np.ndarray:
+        """The MSPD thresholds in pixels of an image ``image_width`` wide: ``k · w / 640``."""
+        return np.asarray(self.mspd_thresholds) * float(image_width) / self.reference_width
+
+
+BOP19 = Bop19Protocol()
+
+#: The toolkit's VSD δ per dataset (mm).
+VSD_DELTAS: dict[str, float] = {
+    **dict.fromkeys(
+        ("hb", "icbin", "icmi", "lm", "lmo", "ruapc", "tless", "tudl", "tyol", "ycbv", "hope"), 15.0
+    ),
+    "itodd": 5.0,
+}
+
+
+# --------------------------------------------------------------------------------------------------
+# Correctness per threshold
+# --------------------------------------------------------------------------------------------------
+
+
+def vsd_correct(vsd: Any, protocol: Bop19Protocol = BOP19) -> np.ndarray:
+    """``vsd (…, n_τ)`` (errors for ``protocol.vsd_taus``) → ``(…, n_τ, n_θ)`` bool: ``e(τ) < θ``
+    (NaN: not correct)."""
+    e = _np(vsd)
+    if e.shape[-1:] != (len(protocol.vsd_taus),):
+        raise ValueError(f"vsd must end in {len(protocol.vsd_taus)} (one error per τ), got {e.shape}")
+    return e[..., None] < np.asarray(protocol.vsd_thetas)
+
+
+def mssd_correct(mssd: Any, diameter: Any, protocol: Bop19Protocol = BOP19) -> np.ndarray:
+    """``mssd (…)``, ``diameter`` (broadcastable, same units) → ``(…, n_k)`` bool:
+    ``mssd / diameter < k`` (the toolkit normalises the error; NaN: not correct)."""
+    with np.errstate(invalid="ignore"):
+        e = _np(mssd) / _np(diameter)
+    return e[..., None] < np.asarray(protocol.mssd_thresholds)
+
+
+def mspd_correct(mspd: Any, image_width: Any, protocol: Bop19Protocol = BOP19) -> np.ndarray:
+    """``mspd (…)`` px, ``image_width`` (broadcastable) px → ``(…, n_k)`` bool:
+    ``mspd · (640 / w) < k`` (the toolkit's normalisation; NaN: not correct)."""
+    with np.errstate(invalid="ignore"):
+        e = (protocol.reference_width / _np(image_width)) * _np(mspd)
+    return e[..., None] < np.asarray(protocol.mspd_thresholds)
+
+
+# --------------------------------------------------------------------------------------------------
+# Matching
+# --------------------------------------------------------------------------------------------------
+
+
+class Matches(NamedTuple):
+    """Result of :func:`match`, with ``T…`` the broadcast threshold shape."""
+
+    gt_matched: np.ndarray  # (T…, G) bool: the GT instance has a matched estimate
+    est_to_gt: np.ndarray  # (T…, E) int: the GT matched to each estimate, -1 for none
+
+
+def match(
+    scores: Any,
+    errors: Any,
+    thresholds: Any,
+    *,
+    gt_valid: Any = None,
+    max_estimates: int | None = None,
+) -> Matches:
+    """The toolkit's greedy matching of the estimates of ONE object in ONE image to its GT instances.
+
+    ``scores (E,)``; ``errors (E, G, …)`` — the error of each estimate w.r.t. each GT instance, in the
+    units of ``thresholds``, optionally with trailing dimensions that broadcast against
+    ``thresholds`` (e.g. ``(E, G)`` with ``(T,)``: the same errors at T thresholds; ``(E, G, T)`` with
+    ``(T,)``: one error per threshold; VSD: ``(E, G, n_τ, 1)`` with ``θ (n_θ,)``). ``gt_valid (G,)``:
+    the targets (default all; invalid ones are never matched). ``max_estimates``: only the top-k
+    estimates by score take part (BOP19: ``inst_count``; None: all; 0: none).
+
+    For each threshold independently, in decreasing score, an estimate is matched to the unmatched
+    valid GT with the smallest error among those with ``error < threshold`` (strict), if any. NaN
+    errors never match.
+    """
+    s = _np(scores).reshape(-1)
+    err = _np(errors)
+    E = len(s)
+    if err.ndim < 2 or err.shape[0] != E:
+        raise ValueError(f"errors must be (E={E}, G, …), got {err.shape}")
+    G = err.shape[1]
+    th = _np(thresholds)
+    t_shape = np.broadcast_shapes(err.shape[2:], th.shape)
+    T = math.prod(t_shape)
+    extra = err.shape[2:]
+    err = err.reshape(E, G, *(1,) * (len(t_shape) - len(extra)), *extra)  # right-aligned, as numpy
+    e = np.broadcast_to(err, (E, G, *t_shape)).reshape(E, G, T)
+    th = np.broadcast_to(th, t_shape).reshape(T)
+    valid = np.ones(G, dtype=bool) if gt_valid is None else np.asarray(gt_valid, dtype=bool).reshape(G)
+    order = np.argsort(-s, kind="stable")
+    if max_estimates is not None:
+        order = order[: max(0, int(max_estimates))]
+    matched = np.zeros((T, G), dtype=bool)
+    est_to_gt = np.full((T, E), -1, dtype=np.int64)
+    rows = np.arange(T)
+    with np.errstate(invalid="ignore"):
+        below = e < th  # (E, G, T)
+    for i in order:
+        cand = below[i].T & ~matched & valid  # (T, G)
+        best = np.where(cand, e[i].T, np.inf).argmin(axis=1)  # first of the smallest
+        hit = cand[rows, best]
+        matched[rows[hit], best[hit]] = True
+        est_to_gt[rows[hit], i] = best[hit]
+    return Matches(matched.reshape(*t_shape, G), est_to_gt.reshape(*t_shape, E))
+
+
+# --------------------------------------------------------------------------------------------------
+# Average recall
+# --------------------------------------------------------------------------------------------------
+
+
+def _recall(hits: np.ndarray, n: int) -> np.ndarray:
+    return hits.sum(axis=0) / n if n else np.zeros(hits.shape[1:])
+
+
+def _summary(
+    hits: dict[str, np.ndarray | None], targets: np.ndarray, obj_ids: np.ndarray | None
+) -> dict[str, Any]:
+    """``hits[name] (M, …)`` bool per GT row; ``targets (M,)`` which rows count."""
+
+    def scores(mask: np.ndarray) -> dict[str, Any]:
+        n = int(mask.sum())
+        out: dict[str, Any] = {"n_targets": n}
+        for name in ("vsd", "mssd", "mspd"):
+            h = hits[name]
+            rec = None if h is None else _recall(h[mask], n)
+            out[f"recall_{name}"] = rec
+            out[f"AR_{name.upper()}"] = math.nan if rec is None else float(rec.mean())
+        parts = [out["AR_VSD"], out["AR_MSSD"], out["AR_MSPD"]]
+        out["AR"] = float(np.mean(parts))  # NaN unless all three are given
+        return out
+
+    result = scores(targets)
+    if obj_ids is not None:
+        per = {}
+        for o in np.unique(obj_ids[targets]):
+            sub = scores(targets & (obj_ids == o))
+            per[int(o)] = {k: v for k, v in sub.items() if not k.startswith("recall_")}
+        result["per_object"] = per
+        result["AR_obj_mean"] = float(np.mean([v["AR"] for v in per.values()])) if per else math.nan
+    return result
+
+
+def ar_from_paired_errors(
+    vsd: Any,
+    mssd: Any,
+    mspd: Any,
+    diameters: Any,
+    image_width: Any,
+    *,
+    obj_ids: Any = None,
+    visib_fract: Any = None,
+    protocol: Bop19Protocol = BOP19,
+) -> dict[str, Any]:
+    """BOP19 average recall when each target has (at most) one paired estimate.
+
+    ``vsd (N, n_τ)`` (errors at ``protocol.vsd_taus``), ``mssd (N,)`` (units of ``diameters``),
+    ``mspd (N,)`` px, ``diameters (N,)`` or scalar, ``image_width`` px, scalar or ``(N,)``; a missing
+    estimate is NaN (never correct). Any of ``vsd`` / ``mssd`` / ``mspd`` may be None: its AR is NaN
+    and so is ``AR``. ``visib_fract (N,)``: rows below ``protocol.visib_gt_min`` are not targets
+    (default: all rows are). ``obj_ids (N,)``: adds ``per_object`` ({obj_id: {AR…, n_targets}}) and
+    ``AR_obj_mean`` (their unweighted mean, not the BOP score).
+
+    Returns ``AR``, ``AR_VSD``, ``AR_MSSD``, ``AR_MSPD``, ``recall_vsd (n_τ, n_θ)``,
+    ``recall_mssd (n_k,)``, ``recall_mspd (n_k,)``, ``n_targets``. Recall pools all targets (module
+    docstring)."""
+    given = [a for a in (vsd, mssd, mspd) if a is not None]
+    if not given:
+        raise ValueError("give at least one of vsd, mssd, mspd")
+    N = len(np.atleast_1d(_np(given[0])))
+    hits: dict[str, np.ndarray | None] = {"vsd": None, "mssd": None, "mspd": None}
+    if vsd is not None:
+        v = _np(vsd)
+        if v.shape != (N, len(protocol.vsd_taus)):
+            raise ValueError(f"vsd must be (N={N}, {len(protocol.vsd_taus)}), got {v.shape}")
+        hits["vsd"] = vsd_correct(v, protocol)
+    if mssd is not None:
+        hits["mssd"] = mssd_correct(_check_n(mssd, N, "mssd"), _per_row(diameters, N), protocol)
+    if mspd is not None:
+        hits["mspd"] = mspd_correct(_check_n(mspd, N, "mspd"), _per_row(image_width, N), protocol)
+    targets = np.ones(N, dtype=bool)
+    if visib_fract is not None:
+        targets = _check_n(visib_fract, N, "visib_fract") >= protocol.visib_gt_min
+    ids = None if obj_ids is None else np.asarray(obj_ids).reshape(-1)
+    if ids is not None and len(ids) != N:
+        raise ValueError(f"obj_ids must be ({N},), got {ids.shape}")
+    return _summary(hits, targets, ids)
+
+
+def _check_n(x: Any, N: int, name: str) -> np.ndarray:
+    a = _np(x).reshape(-1)
+    if len(a) != N:
+        raise ValueError(f"{name} must be ({N},), got {np.shape(x)}")
+    return a
+
+
+def _per_row(x: Any, N: int) -> np.ndarray:
+    a = _np(x).reshape(-1)
+    if len(a) not in (1, N):
+        raise ValueError(f"expected a scalar or ({N},), got {np.shape(x)}")
+    return np.broadcast_to(a, (N,))
+
+
+@dataclass
+class ImageObjectErrors:
+    """The estimates and GT instances of ONE object in ONE image, with all their pairwise errors (for
+    :func:`average_recall`). ``scores (E,)``; ``visib_fract (G,)``; ``vsd (E, G, n_τ)``, ``mssd (E, G)``
+    (units of ``diameter``), ``mspd (E, G)`` px — each optional, but given for all groups or none.
+    ``inst_count``: how many top-scored estimates count (default: the number of targets,
+    ``visib_fract ≥ visib_gt_min``, as in the toolkit's ``test_targets_bop19.json``)."""
+
+    obj_id: int
+    diameter: float
+    image_width: float
+    scores: Any
+    visib_fract: Any
+    vsd: Any = None
+    mssd: Any = None
+    mspd: Any = None
+    inst_count: int | None = None
+    scene_id: int = 0
+    im_id: int = 0
+
+
+def average_recall(groups: Iterable[ImageObjectErrors], protocol: Bop19Protocol = BOP19) -> dict[str, Any]:
+    """BOP19 average recall over a dataset given as (scene, image, object) groups with full
+    estimate × GT error matrices: per group the toolkit's matching (:func:`match`, top-``inst_count``
+    estimates, targets = ``visib_fract ≥ 0.1``), then recall per threshold over all targets. Returns
+    the keys of :func:`ar_from_paired_errors`, always with ``per_object``."""
+    rows: dict[str, list[np.ndarray]] = defaultdict(list)
+    targets, ids = [], []
+    present: set[tuple[str, bool]] = set()
+    taus, thetas = np.asarray(protocol.vsd_taus), np.asarray(protocol.vsd_thetas)
+    for k, g in enumerate(groups):
+        s = _np(g.scores).reshape(-1)
+        vis = _np(g.visib_fract).reshape(-1)
+        E, G = len(s), len(vis)
+        valid = vis >= protocol.visib_gt_min
+        top = int(valid.sum()) if g.inst_count is None else int(g.inst_count)
+        for name in ("vsd", "mssd", "mspd"):
+            present.add((name, getattr(g, name) is None))
+        if g.vsd is not None:
+            v = _np(g.vsd)
+            if v.shape != (E, G, len(taus)):
+                raise ValueError(f"group {k}: vsd must be ({E}, {G}, {len(taus)}), got {v.shape}")
+            m = match(s, v[..., None], thetas, gt_valid=valid, max_estimates=top).gt_matched
+            rows["vsd"].append(np.moveaxis(m, -1, 0))  # (G, n_τ, n_θ)
+        for name, ths in (("mssd", protocol.mssd_thresholds), ("mspd", protocol.mspd_thresholds)):
+            a = getattr(g, name)
+            if a is None:
+                continue
+            a = _np(a)
+            if a.shape != (E, G):
+                raise ValueError(f"group {k}: {name} must be ({E}, {G}), got {a.shape}")
+            # the toolkit's normalisation: MSSD / diameter, MSPD · 640 / w
+            a = (
+                a / float(g.diameter)
+                if name == "mssd"
+                else (protocol.reference_width / float(g.image_width)) * a
+            )
+            m = match(s, a, np.asarray(ths), gt_valid=valid, max_estimates=top)
+            rows[name].append(m.gt_matched.T)  # (G, n_k)
+        targets.append(valid)
+        ids.append(np.full(G, g.obj_id))
+    for name in ("vsd", "mssd", "mspd"):
+        if (name, True) in present and (name, False) in present:
+            raise ValueError(f"{name} errors are given for some groups but not for others")
+    shapes = {
+        "vsd": (len(protocol.vsd_taus), len(protocol.vsd_thetas)),
+        "mssd": (len(protocol.mssd_thresholds),),
+        "mspd": (len(protocol.mspd_thresholds),),
+    }
+    hits = {
+        name: (np.concatenate(rows[name]) if rows[name] else np.zeros((0, *shape), dtype=bool))
+        if (name, False) in present or not present
+        else None
+        for name, shape in shapes.items()
+    }
+    gt_targets = np.concatenate(targets) if targets else np.zeros(0, dtype=bool)
+    gt_ids = np.concatenate(ids) if ids else np.zeros(0, dtype=np.int64)
+    return _summary(hits, gt_targets, gt_ids)
+
+
+# --------------------------------------------------------------------------------------------------
+# The paper's pose recalls
+# --------------------------------------------------------------------------------------------------
+
+
+def _sym_rotations(syms: Any) -> np.ndarray:
+    """``R_S (S, 3, 3)`` of one symmetry set: None (identity), the ``(R_S, t_S)`` tuple of
+    :func:`~posediff.metrics.bop.symmetry_transforms`, or the rotations alone."""
+    if syms is None:
+        return np.eye(3)[None]
+    if isinstance(syms, tuple) and len(syms) == 2:
+        syms = syms[0]  # only the rotations enter the rotation error
+    R = _np(syms)
+    if R.shape[-2:] != (3, 3) or R.size == 0:
+        raise ValueError(f"a symmetry set must hold (S, 3, 3) rotations, got {R.shape}")
+    return R.reshape(-1, 3, 3)
+
+
+def symmetric_rotation_errors_deg(R_est: Any, R_gt: Any, syms: Any = None) -> np.ndarray:
+    """``min_{S} ∠(R_est (R_gt R_S)ᵀ)`` in degrees, ``(N,)``, for ``R (N, 3, 3)`` (or ``(3, 3)``).
+
+    ``syms``: None (no symmetry); ONE set for all targets — the ``(R_S, t_S)`` tuple of
+    :func:`~posediff.metrics.bop.symmetry_transforms` (``t_S`` is ignored) or an array ``R_S (S, 3, 3)``;
+    or a ``list`` of N such sets, one per target (a set object repeated in the list is evaluated in
+    one go). Continuous symmetries enter as their discretised set, so the error can exceed the exact
+    one by up to half a discretisation step."""
+    Re, Rg = _np(R_est).reshape(-1, 3, 3), _np(R_gt).reshape(-1, 3, 3)
+    if len(Re) != len(Rg):
+        raise ValueError(f"R_est has {len(Re)} rotations, R_gt {len(Rg)}")
+    N = len(Re)
+    groups: dict[int, tuple[Any, list[int]]] = {}
+    if isinstance(syms, list):
+        if len(syms) != N:
+            raise ValueError(f"a list of symmetry sets needs one per target ({N}), got {len(syms)}")
+        for i, s in enumerate(syms):
+            groups.setdefault(id(s), (s, []))[1].append(i)
+    else:
+        groups[0] = (syms, list(range(N)))
+    out = np.empty(N)
+    M = np.einsum("nji,njk->nik", Rg, Re)  # R_gtᵀ R_est; tr(R_est R_Sᵀ R_gtᵀ) = Σ (R_gtᵀ R_est) ⊙ R_S
+    for s, idx in groups.values():
+        RS = _sym_rotations(s)
+        idx_a = np.asarray(idx, dtype=np.int64)
+        step = max(1, (1 << 22) // len(RS))
+        for lo in range(0, len(idx_a), step):
+            sel = idx_a[lo : lo + step]
+            tr = np.einsum("nij,sij->ns", M[sel], RS).max(axis=1)
+            out[sel] = np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
+    return out
+
+
+def _label(x: float) -> str:
+    return f"{x:g}"
+
+
+def pose_recalls(
+    R_est: Any,
+    t_est: Any,
+    R_gt: Any,
+    t_gt: Any,
+    syms: Any = None,
+    rot_thresholds_deg: Sequence[float] = (2.0, 5.0, 10.0),
+    trans_thresholds_mm: Sequence[float] = (20.0, 50.0, 100.0),
+) -> dict[str, float]:
+    """The paper's recalls (Hsiao et al., CVPR 2024, Table 3) over N targets, each strictly below
+    the threshold: ``R@θ`` — symmetry-aware rotation error (:func:`symmetric_rotation_errors_deg`)
+    ``< θ`` degrees; ``T@Xcm`` — ``‖t_est − t_gt‖ < X`` (translations in mm, labels in cm: 20 mm →
+    ``T@2cm``); ``x@Xcm`` / ``y@Xcm`` / ``z@Xcm`` — ``|Δt_x|`` etc. ``< X``. ``R (N, 3, 3)``,
+    ``t (N, 3)``; NaN poses (missing estimates) count as misses; N = 0 gives NaN."""
+    Re, Rg = _np(R_est).reshape(-1, 3, 3), _np(R_gt).reshape(-1, 3, 3)
+    tE, tG = _np(t_est).reshape(-1, 3), _np(t_gt).reshape(-1, 3)
+    if not len(Re) == len(Rg) == len(tE) == len(tG):
+        raise ValueError(f"pose counts differ: {len(Re)}, {len(tE)}, {len(Rg)}, {len(tG)}")
+    N = len(Re)
+    out: dict[str, float] = {}
+    rot = symmetric_rotation_errors_deg(Re, Rg, syms) if N else np.zeros(0)
+    d = tE - tG
+    dist = np.linalg.norm(d, axis=1)
+
+    def frac(ok: np.ndarray) -> float:
+        return float(ok.mean()) if N else math.nan
+
+    with np.errstate(invalid="ignore"):
+        for th in rot_thresholds_deg:
+            out[f"R@{_label(th)}"] = frac(rot < th)
+        for th in trans_thresholds_mm:
+            out[f"T@{_label(th / 10.0)}cm"] = frac(dist < th)
+        for k, axis in enumerate("xyz"):
+            for th in trans_thresholds_mm:
+                out[f"{axis}@{_label(th / 10.0)}cm"] = frac(np.abs(d[:, k]) < th)
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+# Results CSV
+# --------------------------------------------------------------------------------------------------
+
+CSV_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
+TIME_TOLERANCE_S = 1e-3  # the toolkit's tolerance between the times of one image's estimates
+
+
+@dataclass(eq=False)
+class BopEstimate:
+    """One row of a BOP19 results file: ``R (3, 3)`` model → camera, ``t (3,)`` in mm, ``time`` the
+    seconds spent on the whole image (the same for all its estimates; −1 if unknown)."""
+
+    scene_id: int
+    im_id: int
+    obj_id: int
+    score: float
+    R: np.ndarray
+    t: np.ndarray
+    time: float = -1.0
+
+    def __post_init__(self) -> None:
+        for name in ("scene_id", "im_id", "obj_id"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or int(v) != v:
+                raise ValueError(f"{name} must be an integer, got {v!r}")
+            setattr(self, name, int(v))
+        self.score, self.time = float(self.score), float(self.time)
+        R, t = _np(self.R), _np(self.t)
+        if R.size != 9 or t.size != 3:
+            raise ValueError(f"R must have 9 numbers and t 3, got {R.shape} and {t.shape}")
+        self.R, self.t = R.reshape(3, 3), t.reshape(3)
+        if not (np.isfinite(self.R).all() and np.isfinite(self.t).all() and math.isfinite(self.score)):
+            raise ValueError(f"non-finite R, t or score in the estimate of obj {self.obj_id}")
+        if not math.isfinite(self.time):
+            raise ValueError(f"time must be finite (−1 if unknown), got {self.time}")
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, BopEstimate):
+            return NotImplemented
+        return (
+            (self.scene_id, self.im_id, self.obj_id, self.score, self.time)
+            == (other.scene_id, other.im_id, other.obj_id, other.score, other.time)
+            and np.array_equal(self.R, other.R)
+            and np.array_equal(self.t, other.t)
+        )
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+def _as_estimate(row: BopEstimate | Mapping[str, Any]) -> BopEstimate:
+    if isinstance(row, BopEstimate):
+        return row
+    return BopEstimate(
+        **{k: row[k] for k in ("scene_id", "im_id", "obj_id", "score", "R", "t")}, time=row.get("time", -1.0)
+    )
+
+
+def _check_times(times: dict[tuple[int, int], float], e: BopEstimate, where: str) -> None:
+    key = (e.scene_id, e.im_id)
+    first = times.setdefault(key, e.time)
+    if abs(first - e.time) > TIME_TOLERANCE_S:
+        raise ValueError(
+            f"{where}: scene {e.scene_id} image {e.im_id} has time {e.time} but also {first}; BOP19 "
+            "needs one time per image"
+        )
+
+
+def write_bop19_csv(path: str | Path, rows: Iterable[BopEstimate | Mapping[str, Any]]) -> Path:
+    """Write a BOP19 results file (``CSV_HEADER``; R as 9 numbers row-major and t as 3 numbers, mm,
+    separated by spaces; shortest round-trip floats) atomically. ``rows``: :class:`BopEstimate` or
+    mappings with its field names (``time`` optional, −1). Raises ValueError when the estimates of one
+    image carry different times."""
+    lines = [CSV_HEADER]
+    times: dict[tuple[int, int], float] = {}
+    for k, row in enumerate(rows):
+        e = _as_estimate(row)
+        _check_times(times, e, f"{path}: row {k}")
+        R = " ".join(repr(float(x)) for x in e.R.reshape(-1))
+        t = " ".join(repr(float(x)) for x in e.t)
+        lines.append(f"{e.scene_id},{e.im_id},{e.obj_id},{e.score!r},{R},{t},{e.time!r}")
+    return atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def read_bop19_csv(path: str | Path) -> list[BopEstimate]:
+    """Parse a BOP19 results file (the header line is optional, as for the toolkit; blank lines are
+    skipped). Raises a one-line ValueError naming the file and line on a malformed row or when one
+    image's estimates carry different times."""
+    out: list[BopEstimate] = []
+    times: dict[tuple[int, int], float] = {}
+    text = Path(path).read_text(encoding="utf-8")
+    for n, line in enumerate(text.splitlines(), start=1):
+        line = line.strip()
+        if not line:
+            continue
+        where = f"{path}:{n}"
+        if not out and line.startswith("scene_id"):
+            if line.replace(" ", "") != CSV_HEADER:
+                raise ValueError(f"{where}: header {line!r}, expected {CSV_HEADER!r}")
+            continue
+        fields = line.split(",")
+        if len(fields) != 7:
+            raise ValueError(f"{where}: {len(fields)} comma-separated fields, expected 7 ({CSV_HEADER})")
+        try:
+            R = [float(x) for x in fields[4].split()]
+            t = [float(x) for x in fields[5].split()]
+            if len(R) != 9 or len(t) != 3:
+                raise ValueError(f"R has {len(R)} numbers (expected 9), t {len(t)} (expected 3)")
+            e = BopEstimate(
+                int(fields[0]),
+                int(fields[1]),
+                int(fields[2]),
+                float(fields[3]),
+                np.array(R),
+                np.array(t),
+                float(fields[6]),
+            )
+        except ValueError as exc:
+            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise ValueError(f"{where}: {msg}") from None
+        _check_times(times, e, where)
+        out.append(e)
+    return out
+
+
+__all__ = [
+    "BOP19",
+    "CSV_HEADER",
+    "VSD_DELTAS",
+    "BopEstimate",
+    "Bop19Protocol",
+    "ImageObjectErrors",
+    "Matches",
+    "ar_from_paired_errors",
+    "average_recall",
+    "match",
+    "mspd_correct",
+    "mssd_correct",
+    "pose_recalls",
+    "read_bop19_csv",
+    "symmetric_rotation_errors_deg",
+    "vsd_correct",
+    "write_bop19_csv",
+]
