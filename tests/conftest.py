@@ -31,3 +31,14 @@ def device(request: pytest.FixtureRequest) -> torch.device:
 @pytest.fixture
 def generator() -> torch.Generator:
     return torch.Generator().manual_seed(0)
+
+
+@pytest.fixture(scope="session")
+def bop_root(tmp_path_factory: pytest.TempPathFactory):  # noqa: ANN201 - pathlib.Path
+    """A small BOP-format dataset made by ``posediff.data.bop.fixture`` (once per test session)."""
+    from posediff.data.bop.fixture import make_bop_fixture
+
+    out = tmp_path_factory.mktemp("bop") / "fixture"
+    make_bop_fixture(out, seed=0, width=240, height=180, pbr_scenes=2, pbr_images=4, train_views=4,
+                     test_scenes=2, test_images=2)  # fmt: skip
+    return out

@@ -213,7 +213,7 @@ class BopDataModule(L.LightningDataModule):
             image_size=self.image_size,
             train=train,
             rotation_only=self.rotation_only,
-            **{k.removeprefix("dzi_"): v for k, v in self.dzi.items()},
+            **self.dzi,
         )
 
     def _train_instances(self) -> list[Instance]:

@@ -1,0 +1,185 @@
+"""The BOP reader and the per-instance crops on the project's BOP fixture (``bop_root`` in conftest)."""
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from torch.testing import assert_close
+
+from posediff.data.bop import (
+    BopDataModule,
+    BopFormatError,
+    BopModels,
+    BopSplit,
+    HardAugment,
+    read_targets,
+    target_instances,
+)
+from posediff.data.bop.reader import read_mask
+
+
+@pytest.fixture(scope="module")
+def dm(bop_root: Path) -> BopDataModule:
+    d = BopDataModule(str(bop_root), image_size=64, batch_size=4, num_workers=0, augment=None)
+    d.setup()
+    return d
+
+
+def test_models(bop_root: Path) -> None:
+    models = BopModels(bop_root)
+    assert models.obj_ids == [1, 2, 3]
+    info = json.loads((bop_root / "models" / "models_info.json").read_text())
+    assert models.diameter(2) == pytest.approx(info["2"]["diameter"])
+    pts = models.points(1)
+    assert pts.ndim == 2 and pts.shape[1] == 3
+    # the diameter is the largest distance between model points
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=-1).max() if len(pts) < 3000 else models.diameter(1)
+    assert d == pytest.approx(models.diameter(1), rel=1e-6)
+    R, t = models.symmetries(2)
+    assert len(R) == 4 and np.allclose(R[0], np.eye(3))  # box: identity + three half turns
+    R, _ = models.symmetries(1)
+    assert len(R) == 2 * 315  # cylinder: ceil(π / 0.01) rotations, with and without the flip
+    assert len(models.symmetries(3)[0]) == 1
+    with pytest.raises(
+        BopFormatError, match=r"\[7\] have no entry in .*models_info.json \(it has \[1, 2, 3\]\)"
+    ):
+        models.check([1, 7], "data.obj_ids")
+
+
+def test_split_reads_every_instance(bop_root: Path) -> None:
+    models = BopModels(bop_root)
+    split = BopSplit(bop_root, "test_primesense", models)
+    n = 0
+    for scene in sorted((bop_root / "test_primesense").iterdir()):
+        gt = json.loads((scene / "scene_gt.json").read_text())
+        n += sum(len(v) for v in gt.values())
+    assert len(split) == n > 0
+    inst = split.instances[0]
+    assert inst.rgb_path.is_file() and inst.depth_path.is_file() and inst.mask_visib_path.is_file()
+    assert inst.image_hw == (180, 240)
+    # the pose projects the object's origin into its box
+    p = inst.K @ inst.t
+    x, y, w, h = inst.bbox_obj
+    assert x <= p[0] / p[2] <= x + w and y <= p[1] / p[2] <= y + h
+    assert read_mask(inst.mask_visib_path).sum() == inst.px_count_visib
+    only2 = BopSplit(bop_root, "test_primesense", models, obj_ids=[2])
+    assert {i.obj_id for i in only2.instances} == {2}
+
+
+def test_targets_are_the_most_visible_instances(bop_root: Path) -> None:
+    models = BopModels(bop_root)
+    targets = read_targets(bop_root / "test_targets_bop19.json")
+    split = BopSplit(bop_root, "test_primesense", models)
+    chosen = target_instances(split.instances, targets)
+    assert len(chosen) == sum(t.inst_count for t in targets)
+    for t in targets:
+        same = [
+            i for i in split.instances if (i.scene_id, i.im_id, i.obj_id) == (t.scene_id, t.im_id, t.obj_id)
+        ]
+        picked = [i for i in chosen if i in same]
+        rest = [i for i in same if i not in picked]
+        assert min(i.visib_fract for i in picked) >= max((i.visib_fract for i in rest), default=0.0)
+
+
+def test_bad_input_is_one_line(bop_root: Path, tmp_path: Path) -> None:
+    with pytest.raises(BopFormatError, match=r"missing BOP models folder .*nowhere.*make-bop"):
+        BopModels(tmp_path / "nowhere")
+    models = BopModels(bop_root)
+    with pytest.raises(BopFormatError, match=r"missing BOP split .*train_real \(folders there: .*models"):
+        BopSplit(bop_root, "train_real", models)
+    # a malformed scene: the file and the key are named
+    root = tmp_path / "broken"
+    shutil.copytree(bop_root, root)
+    scene = sorted((root / "test_primesense").iterdir())[0]
+    gt = json.loads((scene / "scene_gt.json").read_text())
+    first = next(iter(gt))
+    del gt[first][0]["cam_t_m2c"]
+    (scene / "scene_gt.json").write_text(json.dumps(gt))
+    with pytest.raises(
+        BopFormatError, match=rf"scene_gt.json: image {first} instance 0 has no key 'cam_t_m2c'"
+    ):
+        BopSplit(root, "test_primesense", models)
+    (scene / "scene_gt.json").write_text("{not json")
+    with pytest.raises(BopFormatError, match=r"scene_gt.json: not valid JSON"):
+        BopSplit(root, "test_primesense", models)
+    # an object without models_info
+    info = json.loads((root / "models" / "models_info.json").read_text())
+    del info["3"]
+    (root / "models" / "models_info.json").write_text(json.dumps(info))
+    shutil.copy(bop_root / "test_primesense" / scene.name / "scene_gt.json", scene / "scene_gt.json")
+    with pytest.raises(BopFormatError, match=r"object 3, which has no entry in .*models_info.json"):
+        BopSplit(root, "test_primesense", BopModels(root))
+    with pytest.raises(ValueError, match="data.root is not set"):
+        BopDataModule("")
+
+
+def test_samples_round_trip_to_the_ground_truth(dm: BopDataModule) -> None:
+    assert dm.encoding.fitted and dm.train is not None and dm.test is not None
+    for ds in (dm.train, dm.test):
+        for i in range(0, len(ds), max(1, len(ds) // 5)):
+            s = ds[i]
+            assert s["image"].shape == (3, 64, 64) and s["mask"].shape == (64, 64)
+            assert (
+                float((s["image"] * ~s["mask"]).abs().max()) == 0.0
+            )  # masked to the visible part
+            assert s["mask"].any()
+            R, t = dm.encoding.decode(
+                s["pose"][:3, :3].double(), s["pose"][:3, 3].double(), s["K"].double(), s["centre"].double(),
+                s["side"].double(), 64,
+            )  # fmt: skip
+            assert_close(t.float(), s["translation"], atol=1e-2, rtol=1e-5)
+            assert_close(R.float(), s["rotation"], atol=1e-5, rtol=0)
+            inst = ds.instances[int(s["index"])]
+            assert np.allclose(inst.t, s["translation"].numpy(), atol=1e-3)
+
+
+def test_test_crops_are_centred_and_training_crops_jitter(dm: BopDataModule) -> None:
+    s = dm.test[0]
+    inst = dm.test.instances[0]
+    x, y, w, h = inst.bbox_obj
+    assert_close(s["centre"], torch.tensor([x + w / 2, y + h / 2], dtype=torch.float32))
+    assert float(s["side"]) == pytest.approx(min(1.5 * max(w, h), 240.0))
+    torch.manual_seed(0)
+    a, b = dm.train[0], dm.train[0]
+    assert not torch.equal(a["centre"], b["centre"]) or float(a["side"]) != float(b["side"])
+
+
+def test_translation_statistics_standardise_the_training_split(dm: BopDataModule) -> None:
+    torch.manual_seed(0)
+    deltas = torch.stack([dm.train[i]["pose"][:3, 3] for i in range(len(dm.train)) for _ in range(2)])
+    assert deltas.mean(0).abs().max() < 0.5 and (deltas.std(0) - 1).abs().max() < 0.5
+
+
+def test_filter_and_skipped_targets(bop_root: Path) -> None:
+    d = BopDataModule(
+        str(bop_root),
+        image_size=32,
+        min_visible_px=10**9,
+        translation_stats={"mean": [0, 0, 1], "std": [1, 1, 1]},
+    )
+    d.setup("test")
+    assert len(d.test) == 0 and len(d.skipped) == len(d.targets) > 0
+    d2 = BopDataModule(str(bop_root), image_size=32, max_test_instances=3)
+    with pytest.raises(BopFormatError, match="translation statistics are unknown"):
+        d2.setup("test")
+
+
+def test_augmentation_keeps_the_background_black(dm: BopDataModule) -> None:
+    batch = next(iter(dm.train_dataloader()))
+    aug = HardAugment(p=1.0)
+    out = aug(batch["image"]) * batch["mask"][:, None]
+    assert (
+        out.shape == batch["image"].shape
+        and float(out[~batch["mask"][:, None].expand_as(out)].abs().max()) == 0.0
+    )
+    assert not torch.equal(out, batch["image"])
+    assert 0.0 <= float(out.min()) and float(out.max()) <= 1.0
+
+
+def test_rotation_only_group(bop_root: Path) -> None:
+    d = BopDataModule(str(bop_root), image_size=32, group="so3")
+    d.setup("fit")
+    assert d.train[0]["pose"].shape == (3, 3)
