@@ -110,7 +110,7 @@ class _Depths:
         r = self.renderers.get((H, W))
         if r is None:
             r = self.renderers[(H, W)] = BopRenderer(W, H)
-        if inst.obj_id not in r.models:
+        if inst.obj_id not in r.obj_ids:
             r.add_model(inst.obj_id, self.dm.models.mesh(inst.obj_id, True))
         return r.render_depth(inst.obj_id, R, t, inst.K)
 
@@ -169,14 +169,15 @@ def target_errors(
 
 
 def _recalls(
-    records: Sequence[dict[str, Any]], datamodule: BopDataModule, image_width: int
+    records: Sequence[dict[str, Any]], datamodule: BopDataModule, image_width: int, with_vsd: bool = True
 ) -> dict[str, float]:
-    """The metrics of a set of target records (module docstring)."""
+    """The metrics of a set of target records (module docstring); without VSD, ``AR_VSD`` and ``AR``
+    are NaN."""
     n = len(records)
     if n == 0:
         return {}
     ar = bop19.ar_from_paired_errors(
-        vsd=np.array([r["vsd"] for r in records], dtype=np.float64),
+        vsd=np.array([r["vsd"] for r in records], dtype=np.float64) if with_vsd else None,
         mssd=np.array([r["mssd"] for r in records], dtype=np.float64),
         mspd=np.array([r["mspd"] for r in records], dtype=np.float64),
         diameters=np.array([datamodule.models.diameter(r["instance"].obj_id) for r in records]),
@@ -242,8 +243,8 @@ def evaluate_bop(
     for r in records:
         by_obj.setdefault(r["instance"].obj_id, []).append(r)
     for obj_id in sorted(by_obj):
-        result["shapes"][f"obj_{obj_id:06d}"] = _recalls(by_obj[obj_id], datamodule, width)
-    result["overall"] = _recalls(records, datamodule, width)
+        result["shapes"][f"obj_{obj_id:06d}"] = _recalls(by_obj[obj_id], datamodule, width, vsd)
+    result["overall"] = _recalls(records, datamodule, width, vsd)
     per_image: dict[tuple[int, int], float] = {}
     for r in records:
         if r["estimated"]:
