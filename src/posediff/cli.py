@@ -35,7 +35,7 @@ COMMANDS: dict[str, Command] = {
         "render a small SYMSOL-T, train `quickstart` on the CPU, evaluate, predict: posediff demo [out=DIR] [fit overrides]",
         None,
     ),
-    "data": Command("make datasets: posediff data render|grid [key=value ...]", None),
+    "data": Command("make datasets: posediff data render|grid|make-bop [key=value ...]", None),
 }
 
 #: ``posediff data <subcommand>``.
@@ -45,6 +45,10 @@ DATA_COMMANDS: dict[str, Command] = {
         "render",
     ),
     "grid": Command("a picture of the five shapes: posediff data grid out=symsolt_grid.png", "grid"),
+    "make-bop": Command(
+        "a small BOP-format dataset (3 objects, PBR/real/test splits): posediff data make-bop out=DIR",
+        "make_bop",
+    ),
 }
 
 
@@ -112,6 +116,7 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
         "report": tasks.report,
         "data render": tasks.render_data,
         "data grid": tasks.render_grid,
+        "data make-bop": tasks.make_bop,
     }[name]
     conf = config_dir()
     if not (conf / f"{cmd.config}.yaml").exists():

@@ -314,6 +314,21 @@ def render_grid(cfg: DictConfig) -> int:
     return 0
 
 
+def make_bop(cfg: DictConfig) -> int:
+    """``posediff data make-bop``: the project's small BOP-format dataset (``posediff.data.bop.fixture``)."""
+    from .data.bop.fixture import make_bop_fixture
+
+    kwargs = OmegaConf.to_container(cfg, resolve=True)
+    out = kwargs.pop("out")
+    try:
+        summary = make_bop_fixture(out, **kwargs)
+    except (ValueError, RuntimeError) as e:
+        print(f"posediff data make-bop: {e}", file=sys.stderr)
+        return 2
+    print(summary.line())
+    return 0
+
+
 def _device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")

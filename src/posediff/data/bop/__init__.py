@@ -7,10 +7,16 @@ augmentation (:mod:`.augment`), per-instance datasets and the Lightning data mod
 from .augment import HardAugment
 from .datamodule import BopDataModule, BopInstanceDataset, keep_instance
 from .encoding import PoseEncoding, allocentric_rotation
+from .fixture import BopFixtureSummary, make_bop_fixture
 from .reader import BopFormatError, BopModels, BopSplit, Instance, Target, read_targets, target_instances
+from .render import BopRenderer, RenderedScene
 
 __all__ = [
     "BopDataModule",
+    "BopFixtureSummary",
+    "BopRenderer",
+    "RenderedScene",
+    "make_bop_fixture",
     "BopFormatError",
     "BopInstanceDataset",
     "BopModels",
