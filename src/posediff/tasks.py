@@ -95,7 +95,15 @@ def fit(cfg: DictConfig) -> int:
 
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out_dir = Path(HydraConfig.get().runtime.output_dir)
-    datamodule = instantiate(cfg.data)
+    try:
+        datamodule = instantiate(cfg.data)
+        datamodule.setup("fit")
+    except Exception as e:  # noqa: BLE001 - missing / malformed data: one line, not a traceback
+        message = _data_error(e)
+        if message is None:
+            raise
+        print(f"posediff fit: {message}", file=sys.stderr)
+        return 2
     module = instantiate(cfg.module)
     if not isinstance(module, PoseDiffusionModule):
         raise TypeError(f"module config builds {type(module).__name__}, not a PoseDiffusionModule")
@@ -122,7 +130,6 @@ def fit(cfg: DictConfig) -> int:
     if cfg.get("ema") is not None:
         callbacks.append(instantiate(cfg.ema))
     trainer = instantiate(cfg.trainer, callbacks=callbacks)
-    datamodule.setup("fit")
     encoding = getattr(datamodule, "encoding", None)
     if encoding is not None:  # BOP: statistics of the training split, needed to decode at evaluation
         module.config["data"]["translation_stats"] = encoding.stats()
@@ -176,6 +183,16 @@ def fit(cfg: DictConfig) -> int:
     print(text)
     print(f"metrics: {path} (and metrics.md)")
     return 0
+
+
+def _data_error(e: BaseException) -> str | None:
+    """The one-line message of a data error (missing files, bad values), also when Hydra wrapped it
+    in an instantiation error; ``None`` for anything else."""
+    while e.__cause__ is not None and not isinstance(e, (FileNotFoundError, ValueError)):
+        e = e.__cause__
+    if isinstance(e, (FileNotFoundError, ValueError)):
+        return str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    return None
 
 
 def _evaluate(module: Any, datamodule: Any, **kwargs: Any) -> dict[str, Any]:
@@ -372,9 +389,16 @@ def _checkpoint_run(cfg: DictConfig) -> tuple[Any, DictConfig]:
 
 
 def _data(run: DictConfig) -> Any:
-    """The test data of a run config (``data.*`` as stored, with any overrides applied)."""
-    datamodule = instantiate(run.data)
-    datamodule.setup("test")
+    """The test data of a run config (``data.*`` as stored, with any overrides applied); data errors
+    as one-line ``ValueError``."""
+    try:
+        datamodule = instantiate(run.data)
+        datamodule.setup("test")
+    except Exception as e:  # noqa: BLE001
+        message = _data_error(e)
+        if message is None:
+            raise
+        raise ValueError(message) from None
     return datamodule
 
 
