@@ -17,48 +17,25 @@ Shading: a grey matte material (T-LESS objects are texture-less grey; a colour p
 optional), flat-shaded, with a key light along the viewing direction and a weaker fill light from the
 upper left, both fixed to the camera, so faces at different angles differ in shade.
 
-The GL traps of ``posediff.data.symsol.render`` apply here too and are handled the same way:
-``PYOPENGL_PLATFORM=egl`` and ``LP_NUM_THREADS=0`` by default, ``triton`` imported before the
-first context, the context created lazily (a renderer pickles without it) and :meth:`close`
-destroying only this renderer's context, never the process-wide EGL display.
+The GL traps of a PyTorch process are handled by :mod:`posediff.data.offscreen`: ``triton`` imported
+before the first context, the context created lazily (a renderer pickles without it) and
+:meth:`close` destroying only this renderer's context, never the process-wide EGL display.
 """
 
 from __future__ import annotations
 
-import logging
 import math
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-os.environ.setdefault("LP_NUM_THREADS", "0")
+from ..offscreen import CV_TO_GL, prepare_gl, release
 
 #: Default tolerance (mm) between an instance's own depth and the scene depth for a pixel of the
 #: instance to count as visible (rendered depths of the same surface agree to ~1e-3 mm).
 VISIB_TOLERANCE_MM = 1.0
-
-# OpenCV camera frame (z forward, y down) → OpenGL camera frame (z backward, y up).
-_CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
-
-_GL_READY = False
-
-
-def prepare_gl() -> None:
-    """Make the process safe for an offscreen GL context (idempotent): ``import triton`` before any
-    context exists (the environment defaults are set when this module is imported)."""
-    global _GL_READY
-    if _GL_READY:
-        return
-    logging.getLogger("OpenGL").setLevel(logging.WARNING)
-    try:  # noqa: SIM105 — importing it later, after a GL context exists, segfaults
-        import triton  # noqa: F401
-    except Exception:  # pragma: no cover — not installed, or broken: nothing to protect against
-        pass
-    _GL_READY = True
 
 
 @dataclass
@@ -192,7 +169,7 @@ class _Gl:
         placed = []
         for obj_id, R, t in instances:
             node = next(pools[int(obj_id)])
-            self.scene.set_pose(node, _CV_TO_GL @ _pose_matrix(R, t))
+            self.scene.set_pose(node, CV_TO_GL @ _pose_matrix(R, t))
             placed.append(node)
         return placed
 
@@ -326,30 +303,12 @@ class BopRenderer:
             node.mesh.is_visible = False
 
     def close(self) -> None:
-        """Release the GL context (a later render makes a new one).
-
-        pyrender's own ``delete()`` ends with ``eglTerminate`` on the process-wide default EGL
-        display, which breaks every other live renderer in the process; on EGL only this renderer's
-        context is destroyed here."""
+        """Release the GL context (a later render makes a new one); other renderers stay usable
+        (:func:`posediff.data.offscreen.release`)."""
         if self._gl is None:
             return
         renderer, self._gl = self._gl.renderer, None
-        platform = getattr(renderer, "_platform", None)
-        if platform is None:
-            return
-        if type(platform).__name__ != "EGLPlatform":
-            renderer.delete()
-            return
-        from OpenGL.EGL import EGL_NO_CONTEXT, EGL_NO_SURFACE, eglDestroyContext, eglMakeCurrent
-
-        platform.make_current()
-        renderer._renderer.delete()
-        eglMakeCurrent(platform._egl_display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
-        eglDestroyContext(platform._egl_display, platform._egl_context)
-        platform._egl_context = None
-        platform._egl_display = None  # the platform's own __del__ would eglTerminate it
-        renderer._renderer = None
-        renderer._platform = None  # pyrender's __del__ then does nothing
+        release(renderer)
 
     def __del__(self) -> None:  # pragma: no cover — best effort at interpreter exit
         try:
@@ -361,4 +320,4 @@ class BopRenderer:
         return f"BopRenderer({self.width}x{self.height}, models={self.obj_ids})"
 
 
-__all__ = ["VISIB_TOLERANCE_MM", "BopRenderer", "RenderedScene", "prepare_gl"]
+__all__ = ["VISIB_TOLERANCE_MM", "BopRenderer", "RenderedScene"]

@@ -10,54 +10,29 @@ at different angles differ in brightness and symmetric poses render alike).
 Poses are camera-frame ``[R | t]`` in the OpenCV convention (x right, y down, z forward): a point
 ``p`` of the object lands at ``K (R p + t)``.
 
-Two traps of offscreen GL in a PyTorch process are handled here, before the first context exists
-(``../shared/docs/install-notes.md``):
-
-* importing ``triton`` after a Mesa GL context exists segfaults — it is imported first (if installed);
-* forked ``DataLoader`` workers hang if the parent made a GL context — ``LP_NUM_THREADS=0`` is set
-  and the GL context is created lazily, on the first :meth:`SymsolRenderer.render` call in the
-  process that renders; a renderer pickles without its context, so each worker makes its own.
-
-``PYOPENGL_PLATFORM`` defaults to ``egl``; set it before importing posediff to override.
+The traps of offscreen GL in a PyTorch process are handled by :mod:`posediff.data.offscreen`
+(``triton`` imported first, ``LP_NUM_THREADS=0``); the GL context is created lazily, on the first
+:meth:`SymsolRenderer.render` call in the process that renders, and a renderer pickles without its
+context, so each ``DataLoader`` worker makes its own. ``PYOPENGL_PLATFORM`` defaults to ``egl``.
 """
 
 from __future__ import annotations
 
-import logging
 import math
-import os
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from ...symmetry import SHAPES
+from ..offscreen import CV_TO_GL, prepare_gl, release
 from .shapes import SHAPE_IDS, make_mesh, shape_name
-
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-os.environ.setdefault("LP_NUM_THREADS", "0")
 
 #: Half-width (units) of the view frustum at the scene centre, and the field of view: the authors'.
 FRUSTUM_HALF_WIDTH = 5.25
 FOV_DEG = 60.0
 #: Distance of the scene centre (translation 0 of SYMSOL-T) from the camera: 5.25 / tan 30°.
 SCENE_DISTANCE = FRUSTUM_HALF_WIDTH / math.tan(math.radians(FOV_DEG / 2.0))
-
-_GL_READY = False
-
-
-def prepare_gl() -> None:
-    """Make the process safe for an offscreen GL context (idempotent): ``import triton`` before any
-    context exists (the environment defaults are set when this module is imported)."""
-    global _GL_READY
-    if _GL_READY:
-        return
-    logging.getLogger("OpenGL").setLevel(logging.WARNING)  # "No OpenGL_accelerate module loaded"
-    try:  # noqa: SIM105 — importing it later, after a GL context exists, segfaults
-        import triton  # noqa: F401
-    except Exception:  # pragma: no cover — not installed, or broken: nothing to protect against
-        pass
-    _GL_READY = True
 
 
 def intrinsics(image_size: int, fov_deg: float = FOV_DEG) -> np.ndarray:
@@ -81,10 +56,6 @@ class Rendered:
     R: np.ndarray
     t: np.ndarray
     shape_id: int
-
-
-# OpenCV camera frame (z forward, y down) → OpenGL camera frame (z backward, y up).
-_CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 class SymsolRenderer:
@@ -158,7 +129,7 @@ class SymsolRenderer:
         scene, node = scenes[name]
         pose = np.eye(4)
         pose[:3, :3], pose[:3, 3] = R, t
-        scene.set_pose(node, _CV_TO_GL @ pose)
+        scene.set_pose(node, CV_TO_GL @ pose)
         rgb, depth = renderer.render(scene)
         depth = np.asarray(depth, dtype=np.float32)
         return Rendered(
@@ -172,30 +143,12 @@ class SymsolRenderer:
         )
 
     def close(self) -> None:
-        """Release the GL context (a later render makes a new one).
-
-        pyrender's own ``delete()`` ends with ``eglTerminate`` on the process-wide default EGL
-        display, which breaks every other live renderer in the process; on EGL only this
-        renderer's context is destroyed here."""
+        """Release the GL context (a later render makes a new one); other renderers stay usable
+        (:func:`posediff.data.offscreen.release`)."""
         if self._gl is None:
             return
         renderer, self._gl = self._gl[0], None
-        platform = getattr(renderer, "_platform", None)
-        if platform is None:
-            return
-        if type(platform).__name__ != "EGLPlatform":
-            renderer.delete()
-            return
-        from OpenGL.EGL import EGL_NO_CONTEXT, EGL_NO_SURFACE, eglDestroyContext, eglMakeCurrent
-
-        platform.make_current()
-        renderer._renderer.delete()
-        eglMakeCurrent(platform._egl_display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
-        eglDestroyContext(platform._egl_display, platform._egl_context)
-        platform._egl_context = None
-        platform._egl_display = None  # the platform's own __del__ would eglTerminate it
-        renderer._renderer = None
-        renderer._platform = None  # pyrender's __del__ then does nothing
+        release(renderer)
 
     def __del__(self) -> None:  # pragma: no cover — best effort at interpreter exit
         try:

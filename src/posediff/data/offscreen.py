@@ -1,0 +1,70 @@
+"""Offscreen OpenGL (pyrender over EGL) in a PyTorch process: what every posediff renderer shares.
+
+Two traps of offscreen GL next to PyTorch are handled here (``../shared/docs/install-notes.md``):
+
+* importing ``triton`` after a Mesa GL context exists segfaults — :func:`prepare_gl` imports it
+  first (if installed);
+* forked ``DataLoader`` workers hang if the parent made a GL context — ``LP_NUM_THREADS=0`` is set
+  here, and renderers create their context lazily, in the process that renders.
+
+``PYOPENGL_PLATFORM`` defaults to ``egl`` (Mesa's software EGL on a CPU machine, NVIDIA's on a
+GPU machine); set it before importing posediff to override. :func:`release` frees one pyrender
+``OffscreenRenderer`` without terminating the process-wide EGL display.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from typing import Any
+
+import numpy as np
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+os.environ.setdefault("LP_NUM_THREADS", "0")
+
+#: OpenCV camera frame (x right, y down, z forward) → OpenGL camera frame (y up, z backward).
+CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+_GL_READY = False
+
+
+def prepare_gl() -> None:
+    """Make the process safe for an offscreen GL context (idempotent): ``import triton`` before any
+    context exists (the environment defaults are set when this module is imported)."""
+    global _GL_READY
+    if _GL_READY:
+        return
+    logging.getLogger("OpenGL").setLevel(logging.WARNING)  # "No OpenGL_accelerate module loaded"
+    try:  # noqa: SIM105 — importing it later, after a GL context exists, segfaults
+        import triton  # noqa: F401
+    except Exception:  # pragma: no cover — not installed, or broken: nothing to protect against
+        pass
+    _GL_READY = True
+
+
+def release(renderer: Any) -> None:
+    """Free a pyrender ``OffscreenRenderer``.
+
+    pyrender's own ``delete()`` ends with ``eglTerminate`` on the process-wide default EGL display,
+    which breaks every other live renderer in the process; on EGL only this renderer's context is
+    destroyed here (other platforms use ``delete()``)."""
+    platform = getattr(renderer, "_platform", None)
+    if platform is None:
+        return
+    if type(platform).__name__ != "EGLPlatform":
+        renderer.delete()
+        return
+    from OpenGL.EGL import EGL_NO_CONTEXT, EGL_NO_SURFACE, eglDestroyContext, eglMakeCurrent
+
+    platform.make_current()
+    renderer._renderer.delete()
+    eglMakeCurrent(platform._egl_display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
+    eglDestroyContext(platform._egl_display, platform._egl_context)
+    platform._egl_context = None
+    platform._egl_display = None  # the platform's own __del__ would eglTerminate it
+    renderer._renderer = None
+    renderer._platform = None  # pyrender's __del__ then does nothing
+
+
+__all__ = ["CV_TO_GL", "prepare_gl", "release"]
