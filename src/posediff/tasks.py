@@ -104,6 +104,8 @@ def fit(cfg: DictConfig) -> int:
             raise
         print(f"posediff fit: {message}", file=sys.stderr)
         return 2
+    if hasattr(datamodule, "summary_line"):
+        print(datamodule.summary_line())
     module = instantiate(cfg.module)
     if not isinstance(module, PoseDiffusionModule):
         raise TypeError(f"module config builds {type(module).__name__}, not a PoseDiffusionModule")
@@ -419,6 +421,8 @@ def evaluate_checkpoint(cfg: DictConfig) -> int:
     except (CheckpointError, ValueError, FileNotFoundError, RuntimeError) as e:
         print(f"posediff eval: {e}", file=sys.stderr)
         return 2
+    if hasattr(datamodule, "summary_line"):
+        print(datamodule.summary_line())
     module.to(device)
     result = _evaluate(
         module,

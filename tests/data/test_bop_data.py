@@ -162,6 +162,7 @@ def test_filter_and_skipped_targets(bop_root: Path) -> None:
     )
     d.setup("test")
     assert len(d.test) == 0 and len(d.skipped) == len(d.targets) > 0
+    assert f"{len(d.targets)} targets, {len(d.skipped)} skipped" in d.summary_line()
     d2 = BopDataModule(str(bop_root), image_size=32, max_test_instances=3)
     with pytest.raises(BopFormatError, match="translation statistics are unknown"):
         d2.setup("test")

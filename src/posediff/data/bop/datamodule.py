@@ -285,6 +285,20 @@ class BopDataModule(L.LightningDataModule):
                 )
             self.test = self._dataset(self._test_instances(), train=False)
 
+    def summary_line(self) -> str:
+        """What was read and what the filter dropped, in one line (``posediff fit`` / ``eval`` print it)."""
+        parts = [f"BOP data {self.root}"]
+        if "train" in self.summary:
+            t = self.summary["train"]
+            parts.append(f"train {'+'.join(t['splits'])}: {t['kept']} of {t['instances']} instances kept")
+        if "test" in self.summary:
+            t = self.summary["test"]
+            parts.append(
+                f"{self.test_split}: {t['targets']} targets, {t['skipped']} skipped "
+                f"(≤ {self.min_visible_px} visible pixels; scored as misses)"
+            )
+        return "; ".join(parts)
+
     def on_after_batch_transfer(self, batch: dict[str, Tensor], dataloader_idx: int) -> dict[str, Tensor]:
         """Augment training crops on the device, then mask them to the visible pixels again."""
         if self.augment is not None and self.trainer is not None and self.trainer.training:
