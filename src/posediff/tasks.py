@@ -476,6 +476,11 @@ def predict(cfg: DictConfig) -> int:
             raise ValueError(f"num_samples must be ≥ 1, got {cfg.num_samples}")
         device = _device(str(cfg.device))
         module, run = _checkpoint_run(cfg)
+        if str(run.data.get("_target_", "")).startswith("posediff.data.bop"):
+            raise ValueError(
+                f"checkpoint {cfg.ckpt_path} is a BOP model: predict takes SYMSOL models; "
+                "posediff eval writes a BOP model's estimates (metrics and the BOP19 CSV)"
+            )
         size = int(run.data.get("image_size", 0) or 0)
         if module.cond_key != "image" or not size:
             raise ValueError(
