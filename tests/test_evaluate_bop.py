@@ -31,10 +31,7 @@ class Oracle(nn.Module):
             R, t = batch["rotation"].double(), batch["translation"].double()
             if turn:  # right-multiply by the last of the model's symmetries (the identity for obj 3)
                 S = torch.stack(
-                    [
-                        torch.from_numpy(dm.models.symmetries(int(o))[0][-1])
-                        for o in batch["obj_id"]
-                    ]
+                    [torch.from_numpy(dm.models.symmetries(int(o))[0][-1]) for o in batch["obj_id"]]
                 )
                 R = R @ S
             t = t + torch.tensor([shift_mm, 0.0, 0.0], dtype=torch.float64)
@@ -104,3 +101,25 @@ def test_estimates_export_as_bop19_csv(dm: BopDataModule, tmp_path: Path) -> Non
         inst = by_key[(e.scene_id, e.im_id, e.obj_id, tuple(np.round(np.asarray(e.t), 3)))]
         assert np.allclose(np.asarray(e.R).reshape(3, 3), inst.R, atol=1e-5)
     assert path.read_text().splitlines()[0] == "scene_id,im_id,obj_id,score,R,t,time"
+
+
+def test_partial_runs_and_objects_without_estimates(bop_root: Path) -> None:
+    probe = BopDataModule(
+        str(bop_root), image_size=32, translation_stats={"mean": [0, 0, 1], "std": [1, 1, 1]}
+    )
+    probe.setup("test")
+    counts = sorted(i.px_count_visib for i in probe.targets)
+    d = BopDataModule(str(bop_root), image_size=32, batch_size=2, min_visible_px=counts[len(counts) // 2],
+                      translation_stats={"mean": [0, 0, 1], "std": [1, 1, 1]})  # fmt: skip
+    d.setup("test")
+    assert 0 < len(d.skipped) < len(d.targets)
+    res = evaluate_bop(Oracle(d), d, max_inputs=2, vsd=False)
+    keys = [i.key for i in d.targets]
+    kept_keys = [i.key for i in d.test.instances]
+    last = keys.index(kept_keys[1])  # the second predicted target
+    assert res["targets"] == last + 1 and res["inputs"] == 2
+    assert res["skipped"] == sum(1 for i in d.targets[: last + 1] if i in d.skipped)
+    full = evaluate_bop(Oracle(d), d, vsd=False)
+    for row in full["shapes"].values():  # every object row has every recall (0 where nothing was estimated)
+        assert all(f"recall_{a}@{c}cm" in row for a in ("trans", "x", "y", "z") for c in (2, 5, 10))
+        assert all(f"recall_rot@{c}" in row for c in (2, 5, 10))

@@ -137,12 +137,12 @@ def target_errors(
             est = estimates.get(inst.key)
             rec: dict[str, Any] = {"instance": inst, "estimated": est is not None}
             models = datamodule.models
-            d = models.diameter(inst.obj_id)
+            d = models.diameter(inst.obj_id, evaluation=True)
             if est is None:
                 rec.update(mssd=math.nan, mspd=math.nan, vsd=nan_vsd, R=None, t=None)
                 records.append(rec)
                 continue
-            pts, syms = models.points(inst.obj_id), models.symmetries(inst.obj_id)
+            pts, syms = models.points(inst.obj_id), models.symmetries(inst.obj_id, evaluation=True)
             R, t = est["R"], est["t"]
             rec.update(R=R, t=t, seconds=est["seconds"])
             rec["mssd"] = bop.mssd(R, t, inst.R, inst.t, pts, syms, diameter=d)
@@ -169,25 +169,27 @@ def target_errors(
 
 
 def _recalls(
-    records: Sequence[dict[str, Any]], datamodule: BopDataModule, image_width: int, with_vsd: bool = True
+    records: Sequence[dict[str, Any]], datamodule: BopDataModule, with_vsd: bool = True
 ) -> dict[str, float]:
     """The metrics of a set of target records (module docstring); without VSD, ``AR_VSD`` and ``AR``
-    are NaN."""
+    are NaN. MSPD is normalised by each target's own image width (the toolkit's 640 / w)."""
     n = len(records)
     if n == 0:
         return {}
+    models = datamodule.models
+    width = np.array([r["instance"].image_hw[1] for r in records], dtype=np.float64)
     ar = bop19.ar_from_paired_errors(
         vsd=np.array([r["vsd"] for r in records], dtype=np.float64) if with_vsd else None,
         mssd=np.array([r["mssd"] for r in records], dtype=np.float64),
-        mspd=np.array([r["mspd"] for r in records], dtype=np.float64),
-        diameters=np.array([datamodule.models.diameter(r["instance"].obj_id) for r in records]),
-        image_width=image_width,
+        mspd=np.array([r["mspd"] for r in records], dtype=np.float64) * (REFERENCE_WIDTH / width),
+        diameters=np.array([models.diameter(r["instance"].obj_id, evaluation=True) for r in records]),
+        image_width=REFERENCE_WIDTH,
     )
     row: dict[str, float] = {"targets": float(n)}
     for key in ("AR_MSPD", "AR_MSSD", "AR_VSD", "AR"):
         row[key] = float(ar[key])
     est = [r for r in records if r["estimated"]]
-    rec = {}
+    rec: dict[str, float] = {}
     if est:
         insts = [r["instance"] for r in est]
         rec = bop19.pose_recalls(
@@ -195,16 +197,22 @@ def _recalls(
             np.stack([r["t"] for r in est]),
             np.stack([i.R for i in insts]),
             np.stack([i.t for i in insts]),
-            [datamodule.models.symmetries(i.obj_id) for i in insts],
+            [models.symmetries(i.obj_id, evaluation=True) for i in insts],
             rot_thresholds_deg=ROT_THRESHOLDS_DEG,
             trans_thresholds_mm=tuple(10.0 * c for c in TRANS_THRESHOLDS_CM),
         )
-    frac = len(est) / n  # the recalls of pose_recalls are over the estimated targets; misses count as wrong
-    for name, value in rec.items():
-        row[_KEYS[name[0]] + name[1:]] = float(value) * frac
+    frac = len(est) / n  # pose_recalls counts over the estimated targets; misses count as wrong
+    for name in RECALL_NAMES:
+        row[_KEYS[name[0]] + name[1:]] = float(rec.get(name, 0.0)) * frac
     return row
 
 
+REFERENCE_WIDTH = 640.0
+#: the names ``pose_recalls`` returns for the thresholds used here
+RECALL_NAMES = (
+    *(f"R@{d:g}" for d in ROT_THRESHOLDS_DEG),
+    *(f"{a}@{c:g}cm" for a in "Txyz" for c in TRANS_THRESHOLDS_CM),
+)
 #: ``pose_recalls``' names → the report's metric keys (``R@2`` → ``recall_rot@2``, ``x@2cm`` → ``recall_x@2cm``)
 _KEYS = {"R": "recall_rot", "T": "recall_trans", "x": "recall_x", "y": "recall_y", "z": "recall_z"}
 
@@ -232,19 +240,17 @@ def evaluate_bop(
         max_inputs=max_inputs,
     )
     targets = datamodule.targets
-    if max_inputs is not None:  # a partial run scores what it predicted (and the skipped ones among them)
-        predicted = set(estimates)
-        keep = {i.key for i in datamodule.skipped}
-        targets = [i for i in targets if i.key in predicted or i.key in keep]
+    if max_inputs is not None:  # a partial run scores the targets up to the last one predicted
+        last = max((k for k, i in enumerate(targets) if i.key in estimates), default=-1)
+        targets = targets[: last + 1]
     records = target_errors(datamodule, estimates, targets, vsd=vsd)
-    width = max((r["instance"].image_hw[1] for r in records), default=640)
     result: dict[str, Any] = {"kind": "bop", "shapes": {}}
     by_obj: dict[int, list[dict[str, Any]]] = {}
     for r in records:
         by_obj.setdefault(r["instance"].obj_id, []).append(r)
     for obj_id in sorted(by_obj):
-        result["shapes"][f"obj_{obj_id:06d}"] = _recalls(by_obj[obj_id], datamodule, width, vsd)
-    result["overall"] = _recalls(records, datamodule, width, vsd)
+        result["shapes"][f"obj_{obj_id:06d}"] = _recalls(by_obj[obj_id], datamodule, vsd)
+    result["overall"] = _recalls(records, datamodule, vsd)
     per_image: dict[tuple[int, int], float] = {}
     for r in records:
         if r["estimated"]:

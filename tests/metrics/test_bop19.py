@@ -327,3 +327,23 @@ def test_malformed_csv(tmp_path: Path, line: str, message: str) -> None:
     path.write_text("scene_id,im_id,obj_id,score,R,t\n")
     with pytest.raises(ValueError, match=r"r\.csv:1: header"):
         read_bop19_csv(path)
+
+
+def test_pose_recalls_use_the_symmetries_translations() -> None:
+    """An object whose origin is 50 mm off its symmetry axis: the pose ``P · S`` with ``S`` a half
+    turn about that axis moves the origin by 100 mm, yet it is the same pose (the authors' teS)."""
+    from posediff.metrics.bop import symmetry_transforms
+    from posediff.metrics.bop19 import pose_recalls
+
+    S = np.eye(4)
+    S[:3, :3] = np.diag([-1.0, -1.0, 1.0])
+    S[:3, 3] = [100.0, 0.0, 0.0]  # Rz(π) about the axis through (50, 0, 0)
+    syms = symmetry_transforms({"diameter": 120.0, "symmetries_discrete": [S.reshape(-1).tolist()]})
+    c, s = np.cos(0.3), np.sin(0.3)
+    R_gt = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    t_gt = np.array([10.0, -20.0, 700.0])
+    R_est, t_est = R_gt @ S[:3, :3], t_gt + R_gt @ S[:3, 3]
+    rec = pose_recalls(R_est[None], t_est[None], R_gt[None], t_gt[None], syms)
+    assert rec["R@2"] == 1.0 and rec["T@2cm"] == 1.0 and rec["x@2cm"] == 1.0
+    plain = pose_recalls(R_est[None], t_est[None], R_gt[None], t_gt[None], (syms[0], np.zeros_like(syms[1])))
+    assert plain["T@2cm"] == 0.0 and plain["T@5cm"] == 0.0  # 100 mm apart without the offset

@@ -1,5 +1,6 @@
-"""The pose the network learns for a crop, and its exact inverse (authors' code, SITE translation;
-``../shared/docs/reference-implementation.md`` §9.5; GDR-Net / CDPN's scale-invariant translation).
+"""The pose the network learns for a crop, and its exact inverse: the scale-invariant translation
+(SITE) of CDPN / GDR-Net that the authors' code uses (``../shared/docs/reference-implementation.md``
+§9.5), with the offset over the crop side where the authors divide by the box width / height.
 
 For an object at ``R``, ``t`` (mm, camera frame) seen in a crop with centre ``c`` (pixels), side ``s``
 and zoom ``r = out / s``, with ``o = π(K t)`` the projection of the object's origin:

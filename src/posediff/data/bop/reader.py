@@ -139,6 +139,20 @@ class BopModels:
             self.info[obj_id] = dict(entry)
         eval_dir = self.root / eval_models_dir
         self.eval_dir = eval_dir if eval_dir.is_dir() else self.dir
+        #: the evaluation models' entries (the BOP toolkit reads models_eval/models_info.json); the
+        #: training models' where that folder or file is absent
+        self.eval_info = self.info
+        eval_info_path = self.eval_dir / "models_info.json"
+        if self.eval_dir != self.dir and eval_info_path.is_file():
+            raw_eval = read_json(eval_info_path)
+            self.eval_info = (
+                {int(k): dict(v) for k, v in raw_eval.items()} if isinstance(raw_eval, dict) else {}
+            )
+            missing = sorted(set(self.info) - set(self.eval_info))
+            if missing:
+                raise BopFormatError(
+                    f"{eval_info_path}: no entry for object(s) {missing} of {self.info_path}"
+                )
 
     @property
     def obj_ids(self) -> list[int]:
@@ -152,8 +166,9 @@ class BopModels:
                 f"{where}: object id(s) {missing} have no entry in {self.info_path} (it has {self.obj_ids})"
             )
 
-    def diameter(self, obj_id: int) -> float:
-        return float(self.info[int(obj_id)]["diameter"])
+    def diameter(self, obj_id: int, evaluation: bool = False) -> float:
+        """The object's diameter (mm), from the evaluation models' info with ``evaluation``."""
+        return float((self.eval_info if evaluation else self.info)[int(obj_id)]["diameter"])
 
     def mesh_path(self, obj_id: int, evaluation: bool = False) -> Path:
         path = (self.eval_dir if evaluation else self.dir) / f"obj_{int(obj_id):06d}.ply"
@@ -171,17 +186,21 @@ class BopModels:
         """``(N, 3)`` float64 vertices of the evaluation model (mm): the BOP metrics' point set."""
         return np.asarray(self.mesh(int(obj_id), True).vertices, dtype=np.float64)
 
-    def symmetries(self, obj_id: int, max_sym_disc_step: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    def symmetries(
+        self, obj_id: int, max_sym_disc_step: float = 0.01, evaluation: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The BOP symmetry set ``(R (S, 3, 3), t (S, 3))`` of an object
-        (:func:`posediff.metrics.bop.symmetry_transforms`)."""
-        return _symmetries(self, int(obj_id), float(max_sym_disc_step))
+        (:func:`posediff.metrics.bop.symmetry_transforms`), of the evaluation models with ``evaluation``."""
+        return _symmetries(self, int(obj_id), float(max_sym_disc_step), bool(evaluation))
 
 
 @functools.cache
-def _symmetries(models: BopModels, obj_id: int, step: float) -> tuple[np.ndarray, np.ndarray]:
+def _symmetries(
+    models: BopModels, obj_id: int, step: float, evaluation: bool
+) -> tuple[np.ndarray, np.ndarray]:
     from ...metrics.bop import symmetry_transforms
 
-    return symmetry_transforms(models.info[obj_id], step)
+    return symmetry_transforms((models.eval_info if evaluation else models.info)[obj_id], step)
 
 
 def scene_dirs(split_dir: Path) -> list[Path]:

@@ -10,7 +10,8 @@ Dynamic Zoom-In (DZI; Li et al., CDPN, ICCV 2019, with the settings of the autho
 the side is clipped to ``max(H, W)`` of the image. The ``s × s`` square is resampled to
 ``out × out`` (bilinear for the image, nearest for masks; outside the image is black / empty), which is
 a camera with the same centre and the intrinsics :func:`crop_intrinsics` — focal length × r and
-principal point ``(c_K − (centre − s/2))·r``, ``r = out / s`` (the zoom).
+principal point ``(c_K − (centre − s/2))·r − ½``, ``r = out / s`` (the zoom; pixel centres at
+integers, as OpenCV).
 """
 
 from __future__ import annotations
