@@ -122,9 +122,7 @@ def test_samples_round_trip_to_the_ground_truth(dm: BopDataModule) -> None:
         for i in range(0, len(ds), max(1, len(ds) // 5)):
             s = ds[i]
             assert s["image"].shape == (3, 64, 64) and s["mask"].shape == (64, 64)
-            assert (
-                float((s["image"] * ~s["mask"]).abs().max()) == 0.0
-            )  # masked to the visible part
+            assert float((s["image"] * ~s["mask"]).abs().max()) == 0.0  # masked to the visible part
             assert s["mask"].any()
             R, t = dm.encoding.decode(
                 s["pose"][:3, :3].double(), s["pose"][:3, 3].double(), s["K"].double(), s["centre"].double(),
@@ -184,3 +182,40 @@ def test_rotation_only_group(bop_root: Path) -> None:
     d = BopDataModule(str(bop_root), image_size=32, group="so3")
     d.setup("fit")
     assert d.train[0]["pose"].shape == (3, 3)
+
+
+def test_instance_table_columns_and_records(bop_root: Path) -> None:
+    from posediff.data.bop.datamodule import keep_instance, keep_mask
+    from posediff.data.bop.reader import InstanceTable
+
+    models = BopModels(bop_root)
+    a = BopSplit(bop_root, "train_pbr", models).instances
+    b = BopSplit(bop_root, "train_primesense", models).instances
+    both = InstanceTable.concat([a, b])
+    assert len(both) == len(a) + len(b) and isinstance(both, InstanceTable)
+    assert both[len(a)] == b[0] and both[-1] == b[-1] and both[0] != b[0]
+    assert both[len(a)].rgb_path == b[0].rgb_path and both[0].rgb_path.suffix == ".jpg"
+    assert both[-1].rgb_path.suffix == ".png" and len({both[0], a[0]}) == 1  # hashable by ground truth
+    mask = keep_mask(both, 64, 0.5)
+    assert mask.tolist() == [keep_instance(i, 64, 0.5) for i in both]
+    sub = both.take(mask)
+    assert len(sub) == int(mask.sum()) and all(keep_instance(i, 64, 0.5) for i in sub)
+    assert len(both[2:5]) == 3 and both[2:5][0] == both[2]
+    with pytest.raises(IndexError):
+        both[len(both)]
+    assert len(InstanceTable.concat([])) == 0
+
+
+def test_dzi_many_matches_dzi() -> None:
+    from posediff.data.bop.roi import clip_box, clip_boxes, dzi, dzi_many
+
+    boxes = np.array([[100.0, 50.0, 60.0, 40.0], [-20.0, 500.0, 700.0, 90.0]])
+    hw = np.array([[540, 720], [540, 720]])
+    assert np.allclose(clip_boxes(boxes, hw), np.stack([clip_box(b, (540, 720)) for b in boxes]))
+    c, s = dzi_many(boxes, hw, np.random.default_rng(3))
+    for k in range(2):
+        r = np.random.default_rng(0)
+        lo = dzi(boxes[k], (540, 720), rng=r, shift=0.0, scale=0.0)
+        assert np.all(np.abs(c[k] - lo[0]) <= 0.25 * boxes[k, 2:] + 1e-9)
+        m = boxes[k, 2:].max()
+        assert min(1.125 * m, 720.0) - 1e-9 <= s[k] <= min(1.875 * m, 720.0) + 1e-9

@@ -37,18 +37,30 @@ from .reader import (
     BopModels,
     BopSplit,
     Instance,
+    InstanceTable,
     read_mask,
     read_rgb,
     read_targets,
     target_instances,
 )
-from .roi import clip_box, crop, dzi
+from .roi import clip_box, clip_boxes, crop, dzi, dzi_many
 
 
 def keep_instance(inst: Instance, min_visible_px: int, min_visib_fract: float) -> bool:
     """The instance filter (module docstring)."""
     w, h = inst.bbox_visib[2], inst.bbox_visib[3]
     return w > 1 and h > 1 and inst.px_count_visib > min_visible_px and inst.visib_fract >= min_visib_fract
+
+
+def keep_mask(table: InstanceTable, min_visible_px: int, min_visib_fract: float) -> np.ndarray:
+    """:func:`keep_instance` for every instance of a table, ``(N,)`` bool."""
+    wh = table.bbox_visib[:, 2:]
+    return (
+        (wh[:, 0] > 1)
+        & (wh[:, 1] > 1)
+        & (table.px_count_visib > min_visible_px)
+        & (table.visib_fract >= min_visib_fract)
+    )
 
 
 class BopInstanceDataset(Dataset):
@@ -67,7 +79,7 @@ class BopInstanceDataset(Dataset):
         dzi_pad: float = 1.5,
         rotation_only: bool = False,
     ) -> None:
-        self.instances = list(instances)
+        self.instances = instances if isinstance(instances, InstanceTable) else list(instances)
         self.encoding = encoding
         self.image_size = int(image_size)
         self.train = train
@@ -206,7 +218,7 @@ class BopDataModule(L.LightningDataModule):
         """Object names (``obj_000001`` …), the rows of the per-object tables."""
         return [f"obj_{o:06d}" for o in (self.obj_ids or self.models.obj_ids)]
 
-    def _dataset(self, instances: list[Instance], train: bool) -> BopInstanceDataset:
+    def _dataset(self, instances: Sequence[Instance], train: bool) -> BopInstanceDataset:
         return BopInstanceDataset(
             instances,
             self.encoding,
@@ -216,37 +228,42 @@ class BopDataModule(L.LightningDataModule):
             **self.dzi,
         )
 
-    def _train_instances(self) -> list[Instance]:
-        instances: list[Instance] = []
-        for split in self.train_splits:
-            instances.extend(BopSplit(self.root, split, self.models, obj_ids=self.obj_ids).instances)
-        kept = [i for i in instances if keep_instance(i, self.min_visible_px, self.min_visib_fract)]
-        self.summary["train"] = {"instances": len(instances), "kept": len(kept), "splits": self.train_splits}
-        if not kept:
+    def _train_instances(self) -> InstanceTable:
+        table = InstanceTable.concat(
+            [
+                BopSplit(self.root, split, self.models, obj_ids=self.obj_ids).instances
+                for split in self.train_splits
+            ]
+        )
+        kept = table.take(keep_mask(table, self.min_visible_px, self.min_visib_fract))
+        self.summary["train"] = {"instances": len(table), "kept": len(kept), "splits": self.train_splits}
+        if not len(kept):
             raise BopFormatError(
                 f"no training instances in {self.root} / {self.train_splits} pass the filter"
             )
         return kept[: self.max_train] if self.max_train else kept
 
-    def fit_translation_stats(self, instances: Sequence[Instance], draws: int = 4) -> None:
+    def fit_translation_stats(self, instances: InstanceTable, draws: int = 4) -> None:
         """Statistics of the raw SITE translation over the training instances under the training
         crops' DZI jitter (``draws`` crops each, seeded): what the network sees, standardised."""
         rng = np.random.default_rng(self.seed)
-        ds = self._dataset(list(instances), train=True)
-        t, K, c, s = [], [], [], []
-        for inst in instances:
-            for _ in range(draws):
-                centre, side = ds.box(inst, rng)
-                t.append(inst.t), K.append(inst.K), c.append(centre), s.append(side)
+        hw = instances.image_hw
+        box = clip_boxes(instances.bbox_obj, hw)
+        dz = {k.removeprefix("dzi_"): v for k, v in self.dzi.items()}
+        raws = []
         T = torch.from_numpy
-        raw = PoseEncoding.raw_translation(
-            T(np.stack(t)),
-            T(np.stack(K)),
-            T(np.stack(c)),
-            torch.tensor(s, dtype=torch.float64),
-            self.image_size,
-        )
-        self.encoding.fit_stats(raw)
+        for _ in range(draws):
+            centre, side = dzi_many(box, hw, rng, **dz)
+            raws.append(
+                PoseEncoding.raw_translation(
+                    T(instances.t.astype(np.float64)),
+                    T(instances.K.astype(np.float64)),
+                    T(centre),
+                    T(side),
+                    self.image_size,
+                )
+            )
+        self.encoding.fit_stats(torch.cat(raws))
 
     def _test_instances(self) -> list[Instance]:
         split = self.root / self.test_split

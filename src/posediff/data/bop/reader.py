@@ -64,11 +64,12 @@ def _get(entry: Any, key: str, path: Path, where: str, n: int | None = None) -> 
     return arr
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Instance:
     """One ground-truth object instance of one image. ``R`` (3, 3), ``t`` (3,) mm model → camera
     (OpenCV); ``K`` (3, 3); boxes ``[x, y, w, h]`` in pixels (``bbox_obj`` the whole projected
-    object, possibly outside the image; ``bbox_visib`` its visible part)."""
+    object, possibly outside the image; ``bbox_visib`` its visible part). Two instances are equal
+    when they are the same ground truth (split, scene, image, index)."""
 
     split: str
     scene_id: int
@@ -108,6 +109,99 @@ class Instance:
     def key(self) -> tuple[int, int, int]:
         """``(scene_id, im_id, gt_idx)``."""
         return (self.scene_id, self.im_id, self.gt_idx)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Instance):
+            return NotImplemented
+        return (self.split, *self.key) == (other.split, *other.key)
+
+    def __hash__(self) -> int:
+        return hash((self.split, *self.key))
+
+
+#: the per-instance columns of an :class:`InstanceTable` (besides the scene index)
+_COLUMNS = ("scene_id", "im_id", "gt_idx", "obj_id", "R", "t", "K", "depth_scale", "bbox_obj", "bbox_visib",
+            "px_count_visib", "visib_fract")  # fmt: skip
+
+
+class InstanceTable(Sequence[Instance]):
+    """Ground-truth instances stored as numpy columns (a million T-LESS PBR instances take ~0.3 GB
+    and are shared, not copied, by forked ``DataLoader`` workers); indexing yields
+    :class:`Instance` records, slicing / :meth:`take` a smaller table. Columns are attributes:
+    ``obj_id (N,)``, ``R (N, 3, 3)``, ``t (N, 3)``, ``bbox_obj (N, 4)``, ``visib_fract (N,)`` …
+    ``scenes`` lists ``(split, scene folder, rgb extension, (H, W))``; ``scene`` indexes it."""
+
+    def __init__(self, scenes: list[tuple[str, Path, str, tuple[int, int]]], columns: dict[str, np.ndarray]):
+        self.scenes = scenes
+        self.scene = np.asarray(columns["scene"], dtype=np.int32)
+        for name in _COLUMNS:
+            setattr(self, name, columns[name])
+
+    @classmethod
+    def empty(cls) -> InstanceTable:
+        shapes = {"R": (0, 3, 3), "t": (0, 3), "K": (0, 3, 3), "bbox_obj": (0, 4), "bbox_visib": (0, 4)}
+        cols = {n: np.zeros(shapes.get(n, (0,))) for n in _COLUMNS}
+        for n in ("scene_id", "im_id", "gt_idx", "obj_id", "px_count_visib"):
+            cols[n] = cols[n].astype(np.int64)
+        return cls([], {"scene": np.zeros(0, dtype=np.int32), **cols})
+
+    @classmethod
+    def concat(cls, tables: Sequence[InstanceTable]) -> InstanceTable:
+        """One table of several (their scene lists joined)."""
+        tables = [t for t in tables if len(t)]
+        if not tables:
+            return cls.empty()
+        scenes: list[tuple[str, Path, str, tuple[int, int]]] = []
+        offsets = []
+        for t in tables:
+            offsets.append(len(scenes))
+            scenes.extend(t.scenes)
+        cols = {n: np.concatenate([getattr(t, n) for t in tables]) for n in _COLUMNS}
+        cols["scene"] = np.concatenate([t.scene + o for t, o in zip(tables, offsets, strict=True)])
+        return cls(scenes, cols)
+
+    def take(self, index: Any) -> InstanceTable:
+        """The instances at ``index`` (integer array, boolean mask or slice), as a table."""
+        cols = {n: getattr(self, n)[index] for n in _COLUMNS}
+        cols["scene"] = self.scene[index]
+        return InstanceTable(self.scenes, cols)
+
+    def __len__(self) -> int:
+        return len(self.scene)
+
+    def __getitem__(self, i: Any) -> Any:
+        if isinstance(i, slice):
+            return self.take(i)
+        i = int(i)
+        if i < 0:
+            i += len(self)
+        if not 0 <= i < len(self):
+            raise IndexError(f"instance {i} of {len(self)}")
+        split, scene_dir, ext, hw = self.scenes[int(self.scene[i])]
+        return Instance(
+            split=split,
+            scene_id=int(self.scene_id[i]),
+            im_id=int(self.im_id[i]),
+            gt_idx=int(self.gt_idx[i]),
+            obj_id=int(self.obj_id[i]),
+            R=self.R[i],
+            t=self.t[i],
+            K=self.K[i],
+            depth_scale=float(self.depth_scale[i]),
+            bbox_obj=self.bbox_obj[i],
+            bbox_visib=self.bbox_visib[i],
+            px_count_visib=int(self.px_count_visib[i]),
+            visib_fract=float(self.visib_fract[i]),
+            scene_dir=scene_dir,
+            rgb_ext=ext,
+            image_hw=hw,
+        )
+
+    @property
+    def image_hw(self) -> np.ndarray:
+        """``(N, 2)`` image sizes."""
+        hw = np.array([s[3] for s in self.scenes], dtype=np.float64).reshape(-1, 2)
+        return hw[self.scene]
 
 
 class BopModels:
@@ -246,10 +340,19 @@ class BopSplit:
             raise BopFormatError(
                 f"missing BOP split {self.dir} (folders there: {', '.join(available) or 'none'}; {MAKE_HINT})"
             )
-        self.instances: list[Instance] = []
         keep = None if obj_ids is None else {int(o) for o in obj_ids}
+        self._scenes: list[tuple[str, Path, str, tuple[int, int]]] = []
+        self._rows: dict[str, list[Any]] = {n: [] for n in ("scene", *_COLUMNS)}
         for scene_dir in scene_dirs(self.dir):
-            self.instances.extend(self._read_scene(scene_dir, models, keep, images))
+            self._read_scene(scene_dir, models, keep, images)
+        rows, self._rows = self._rows, {}
+        if not rows["scene"]:
+            self.instances = InstanceTable.empty()
+            return
+        cols = {n: np.asarray(v) for n, v in rows.items()}
+        cols["R"], cols["K"] = cols["R"].reshape(-1, 3, 3), cols["K"].reshape(-1, 3, 3)
+        #: the split's instances (an :class:`InstanceTable`)
+        self.instances = InstanceTable(self._scenes, cols)
 
     def _read_scene(
         self,
@@ -257,14 +360,16 @@ class BopSplit:
         models: BopModels,
         keep: set[int] | None,
         images: set[tuple[int, int]] | None,
-    ) -> list[Instance]:
+    ) -> None:
         scene_id = int(scene_dir.name)
         gt_path, cam_path, info_path = (
             scene_dir / f for f in ("scene_gt.json", "scene_camera.json", "scene_gt_info.json")
         )
         gt, cam, info = read_json(gt_path), read_json(cam_path), read_json(info_path)
         ext, hw = _rgb_format(scene_dir)
-        out: list[Instance] = []
+        scene = len(self._scenes)
+        self._scenes.append((self.split, scene_dir, ext, hw))
+        rows = self._rows
         for im_key, gts in gt.items():
             im_id = int(im_key)
             if images is not None and (scene_id, im_id) not in images:
@@ -273,7 +378,7 @@ class BopSplit:
                 raise BopFormatError(f"{cam_path}: no entry for image {im_key}")
             if im_key not in info:
                 raise BopFormatError(f"{info_path}: no entry for image {im_key}")
-            K = _get(cam[im_key], "cam_K", cam_path, f"image {im_key}", 9).reshape(3, 3)
+            K = _get(cam[im_key], "cam_K", cam_path, f"image {im_key}", 9)
             depth_scale = float(cam[im_key].get("depth_scale", 1.0))
             infos = info[im_key]
             if len(infos) != len(gts):
@@ -289,27 +394,22 @@ class BopSplit:
                     raise BopFormatError(
                         f"{gt_path}: {where} is object {obj_id}, which has no entry in {models.info_path}"
                     )
-                out.append(
-                    Instance(
-                        split=self.split,
-                        scene_id=scene_id,
-                        im_id=im_id,
-                        gt_idx=k,
-                        obj_id=obj_id,
-                        R=_get(g, "cam_R_m2c", gt_path, where, 9).reshape(3, 3),
-                        t=_get(g, "cam_t_m2c", gt_path, where, 3),
-                        K=K,
-                        depth_scale=depth_scale,
-                        bbox_obj=_get(gi, "bbox_obj", info_path, where, 4),
-                        bbox_visib=_get(gi, "bbox_visib", info_path, where, 4),
-                        px_count_visib=int(_get(gi, "px_count_visib", info_path, where)),
-                        visib_fract=float(_get(gi, "visib_fract", info_path, where)),
-                        scene_dir=scene_dir,
-                        rgb_ext=ext,
-                        image_hw=hw,
-                    )
-                )
-        return out
+                for name, value in (
+                    ("scene", scene),
+                    ("scene_id", scene_id),
+                    ("im_id", im_id),
+                    ("gt_idx", k),
+                    ("obj_id", obj_id),
+                    ("R", _get(g, "cam_R_m2c", gt_path, where, 9)),
+                    ("t", _get(g, "cam_t_m2c", gt_path, where, 3)),
+                    ("K", K),
+                    ("depth_scale", depth_scale),
+                    ("bbox_obj", _get(gi, "bbox_obj", info_path, where, 4)),
+                    ("bbox_visib", _get(gi, "bbox_visib", info_path, where, 4)),
+                    ("px_count_visib", int(_get(gi, "px_count_visib", info_path, where))),
+                    ("visib_fract", float(_get(gi, "visib_fract", info_path, where))),
+                ):
+                    rows[name].append(value)
 
     def __len__(self) -> int:
         return len(self.instances)
@@ -389,6 +489,7 @@ __all__ = [
     "BopModels",
     "BopSplit",
     "Instance",
+    "InstanceTable",
     "Target",
     "read_depth",
     "read_json",

@@ -40,6 +40,33 @@ def dzi(
     return centre, max(side, 1.0)
 
 
+def dzi_many(
+    bbox: np.ndarray,
+    image_hw: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    shift: float = 0.25,
+    scale: float = 0.25,
+    pad: float = 1.5,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`dzi` (jittered) for ``bbox (N, 4)`` in images ``image_hw (N, 2)``: ``(centres (N, 2), sides (N,))``."""
+    bbox = np.asarray(bbox, dtype=np.float64).reshape(-1, 4)
+    wh = bbox[:, 2:]
+    centre = bbox[:, :2] + 0.5 * wh + wh * rng.uniform(-shift, shift, size=(len(bbox), 2))
+    side = wh.max(axis=1) * (1.0 + scale * rng.uniform(-1.0, 1.0, size=len(bbox)))
+    side = np.minimum(side * pad, np.asarray(image_hw, dtype=np.float64).reshape(-1, 2).max(axis=1))
+    return centre, np.maximum(side, 1.0)
+
+
+def clip_boxes(bbox: np.ndarray, image_hw: np.ndarray) -> np.ndarray:
+    """:func:`clip_box` for ``bbox (N, 4)`` in images ``image_hw (N, 2)``."""
+    bbox = np.asarray(bbox, dtype=np.float64).reshape(-1, 4)
+    H, W = np.asarray(image_hw, dtype=np.float64).reshape(-1, 2).T
+    x1, y1 = np.clip(bbox[:, 0], 0, W), np.clip(bbox[:, 1], 0, H)
+    x2, y2 = np.clip(bbox[:, 0] + bbox[:, 2], 0, W), np.clip(bbox[:, 1] + bbox[:, 3], 0, H)
+    return np.stack([x1, y1, np.maximum(x2 - x1, 0.0), np.maximum(y2 - y1, 0.0)], axis=1)
+
+
 def clip_box(bbox: np.ndarray, image_hw: tuple[int, int]) -> np.ndarray:
     """``[x, y, w, h]`` clipped to the image (the authors clip the training box)."""
     x, y, w, h = np.asarray(bbox, dtype=np.float64).reshape(4)
@@ -79,4 +106,4 @@ def crop(
     return res.astype(bool) if image.dtype == bool else res
 
 
-__all__ = ["clip_box", "crop", "crop_intrinsics", "crop_matrix", "dzi"]
+__all__ = ["clip_box", "clip_boxes", "crop", "crop_intrinsics", "crop_matrix", "dzi", "dzi_many"]
