@@ -35,10 +35,13 @@ RENDER_SMALL = [
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
-def test_experiment_builds(experiment: str) -> None:
+def test_experiment_builds(experiment: str, request: pytest.FixtureRequest) -> None:
     probe = _compose([f"+experiment={experiment}", *NO_HYDRA])
     images = probe.module.cond_key == "image"
-    cfg = _compose([f"+experiment={experiment}", *NO_HYDRA, *(RENDER_SMALL if images else [])])
+    small = RENDER_SMALL if images else []
+    if str(probe.data._target_).startswith("posediff.data.bop"):  # BOP experiments read the fixture
+        small = [f"data.root={request.getfixturevalue('bop_root')}", "data.num_workers=0", "data.batch_size=2"]
+    cfg = _compose([f"+experiment={experiment}", *NO_HYDRA, *small])
     module = instantiate(cfg.module)
     assert isinstance(module, PoseDiffusionModule)
     data = instantiate(cfg.data)
@@ -75,6 +78,26 @@ def test_paper_experiments_settings() -> None:
         )
         assert (cfg.module.lr, cfg.module.lr_final, cfg.module.decay_start) == (1e-4, 1e-5, 0.5)
         assert cfg.trainer.max_steps == steps and cfg.schedule.num_levels == 100
+
+
+def test_tless_experiments_settings() -> None:
+    """tless_se3 / tless_r3so3: ResNet34 at 224 px, 32 images × 256 noisy poses, 400k steps, PBR + real."""
+    for name, group in (("tless_se3", "se3"), ("tless_r3so3", "r3so3")):
+        cfg = _compose([f"+experiment={name}", *NO_HYDRA])
+        assert cfg.group._target_.lower().endswith(group)
+        assert (cfg.encoder.arch, cfg.data.image_size, cfg.data.batch_size, cfg.module.num_noisy) == (
+            "resnet34",
+            224,
+            32,
+            256,
+        )
+        assert list(cfg.data.train_splits) == ["train_pbr", "train_primesense"]
+        assert (cfg.data.test_split, cfg.data.targets) == ("test_primesense", "test_targets_bop19.json")
+        assert (cfg.data.dzi_shift, cfg.data.dzi_scale, cfg.data.dzi_pad) == (0.25, 0.25, 1.5)
+        assert cfg.data.rotation == "allocentric" and cfg.data.augment is not None
+        assert (cfg.module.lr, cfg.module.lr_final, cfg.module.decay_start) == (1e-4, 1e-5, 0.5)
+        assert cfg.trainer.max_steps == 400_000 and cfg.schedule.num_levels == 100
+        assert cfg.eval.num_samples == 1
 
 
 def test_ema_and_ddp_options() -> None:
