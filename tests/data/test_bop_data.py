@@ -219,3 +219,30 @@ def test_dzi_many_matches_dzi() -> None:
         assert np.all(np.abs(c[k] - lo[0]) <= 0.25 * boxes[k, 2:] + 1e-9)
         m = boxes[k, 2:].max()
         assert min(1.125 * m, 720.0) - 1e-9 <= s[k] <= min(1.875 * m, 720.0) + 1e-9
+
+
+def test_a_renderer_released_while_another_draws_keeps_its_context() -> None:
+    """A renderer's __del__ may run (garbage collection) in the middle of another renderer's draw;
+    releasing its EGL context must leave the drawing one current (it used to leave none: "Attempt to
+    retrieve context when no valid context" in the next GL call)."""
+    import trimesh
+
+    from posediff.data.bop.render import BopRenderer
+
+    K = np.array([[300.0, 0, 80], [0, 300, 60], [0, 0, 1]])
+    mesh = trimesh.creation.box((40, 30, 20))
+    a, b = BopRenderer(160, 120), BopRenderer(160, 120)
+    a.add_model(1, mesh), b.add_model(1, mesh)
+    ref = b.render_depth(1, np.eye(3), [0, 0, 500], K)
+    a._ready()
+    inner = a._gl.renderer._renderer
+    draw = inner.render
+
+    def render_while_b_is_collected(*args, **kwargs):  # noqa: ANN202, ANN002, ANN003
+        b.close()
+        return draw(*args, **kwargs)
+
+    inner.render = render_while_b_is_collected
+    depth = a.render_depth(1, np.eye(3), [0, 0, 500], K)
+    assert_close(torch.from_numpy(depth), torch.from_numpy(ref))
+    a.close()

@@ -55,16 +55,41 @@ def release(renderer: Any) -> None:
     if type(platform).__name__ != "EGLPlatform":
         renderer.delete()
         return
-    from OpenGL.EGL import EGL_NO_CONTEXT, EGL_NO_SURFACE, eglDestroyContext, eglMakeCurrent
+    from OpenGL.EGL import (
+        EGL_DRAW,
+        EGL_NO_CONTEXT,
+        EGL_NO_SURFACE,
+        EGL_READ,
+        eglDestroyContext,
+        eglGetCurrentContext,
+        eglGetCurrentDisplay,
+        eglGetCurrentSurface,
+        eglMakeCurrent,
+    )
 
+    # this may run from a garbage-collected renderer's __del__ while another renderer is drawing:
+    # make the other context current again afterwards, or its next GL call has no context
+    previous = (eglGetCurrentDisplay(), eglGetCurrentSurface(EGL_DRAW), eglGetCurrentSurface(EGL_READ),
+                eglGetCurrentContext())  # fmt: skip
     platform.make_current()
     renderer._renderer.delete()
     eglMakeCurrent(platform._egl_display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
     eglDestroyContext(platform._egl_display, platform._egl_context)
+    if _handle(previous[3]) and _handle(previous[3]) != _handle(platform._egl_context):
+        eglMakeCurrent(*previous)
     platform._egl_context = None
     platform._egl_display = None  # the platform's own __del__ would eglTerminate it
     renderer._renderer = None
     renderer._platform = None  # pyrender's __del__ then does nothing
+
+
+def _handle(obj: Any) -> int:
+    """The address behind an EGL handle (a ctypes pointer), for comparisons."""
+    import ctypes
+
+    if obj is None or isinstance(obj, int):
+        return int(obj or 0)
+    return int(ctypes.cast(obj, ctypes.c_void_p).value or 0)
 
 
 __all__ = ["CV_TO_GL", "prepare_gl", "release"]
