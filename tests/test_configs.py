@@ -40,7 +40,11 @@ def test_experiment_builds(experiment: str, request: pytest.FixtureRequest) -> N
     images = probe.module.cond_key == "image"
     small = RENDER_SMALL if images else []
     if str(probe.data._target_).startswith("posediff.data.bop"):  # BOP experiments read the fixture
-        small = [f"data.root={request.getfixturevalue('bop_root')}", "data.num_workers=0", "data.batch_size=2"]
+        small = [
+            f"data.root={request.getfixturevalue('bop_root')}",
+            "data.num_workers=0",
+            "data.batch_size=2",
+        ]
     cfg = _compose([f"+experiment={experiment}", *NO_HYDRA, *small])
     module = instantiate(cfg.module)
     assert isinstance(module, PoseDiffusionModule)

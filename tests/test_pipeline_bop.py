@@ -103,7 +103,9 @@ def test_eval_refuses_missing_data(trained: Path, tmp_path: Path, capsys: pytest
     assert len(err.splitlines()) == 1 and "missing BOP models folder" in err and "make-bop" in err
 
 
-def test_predict_refuses_bop_models(trained: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_predict_refuses_bop_models(
+    trained: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     ckpt = trained / "checkpoints" / "last.ckpt"
     assert main(["predict", f"ckpt_path={ckpt}", "index=0", f"hydra.run.dir={tmp_path}"]) == 2
     err = capsys.readouterr().err.strip()
