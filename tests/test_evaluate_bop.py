@@ -124,3 +124,25 @@ def test_partial_runs_and_objects_without_estimates(bop_root: Path) -> None:
     for row in full["shapes"].values():  # every object row has every recall (0 where nothing was estimated)
         assert all(f"recall_{a}@{c}cm" in row for a in ("trans", "x", "y", "z") for c in (2, 5, 10))
         assert all(f"recall_rot@{c}" in row for c in (2, 5, 10))
+
+
+def test_decode_prediction_returns_camera_frame_poses_and_modes(dm: BopDataModule) -> None:
+    from posediff.lie import SE3
+    from posediff.predict import Prediction, decode_prediction
+
+    s = dm.test[0]
+    x = s["pose"].double().expand(6, 4, 4).clone()
+    K, c, side = s["K"].double(), s["centre"].double(), s["side"].double()
+
+    def decode(p: torch.Tensor):  # noqa: ANN202
+        lead = p.shape[:-2]
+        return dm.encoding.decode(p[..., :3, :3], p[..., :3, 3], K.expand(*lead, 3, 3), c.expand(*lead, 2),
+                                  side.expand(*lead), dm.image_size)  # fmt: skip
+
+    pred = decode_prediction(
+        Prediction(samples=x, modes=None, trajectory=x[None].expand(3, 6, 4, 4)), decode, SE3()
+    )
+    assert pred.samples.shape == (6, 4, 4) and pred.trajectory.shape == (3, 6, 4, 4)
+    assert torch.allclose(pred.samples[:, :3, 3].float(), s["translation"].expand(6, 3), atol=1e-2)
+    assert torch.allclose(pred.samples[:, :3, :3].float(), s["rotation"].expand(6, 3, 3), atol=1e-5)
+    assert len(pred.modes) == 1 and float(pred.modes.weights[0]) == 1.0

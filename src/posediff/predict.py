@@ -98,6 +98,35 @@ def predict(
     )
 
 
+def decode_prediction(
+    pred: Prediction,
+    decode: Any,
+    group: Any,
+    *,
+    mode_radius_deg: float = 10.0,
+    mode_translation_radius: float = 20.0,
+    min_mode_weight: float = 0.01,
+) -> Prediction:
+    """The prediction in another frame: ``decode(poses (..., n, n)) → (R (..., 3, 3), t (..., 3))``
+    maps the network's poses (e.g. a BOP crop's ``[R_allo | δ]``) to camera-frame ``[R | t]``
+    (4 × 4); the modes are found again there (``mode_translation_radius`` in the units of ``t``)."""
+    from .diffusion import modes
+    from .lie import get_group
+
+    def to_camera(x: Tensor) -> Tensor:
+        R, t = decode(x)
+        out = torch.zeros((*R.shape[:-2], 4, 4), dtype=torch.float64)
+        out[..., :3, :3], out[..., :3, 3], out[..., 3, 3] = R, t, 1.0
+        return out
+
+    samples = to_camera(pred.samples)
+    target = group if group.matrix_dim == 4 else get_group("r3so3")
+    m = modes(samples, target, radius_deg=mode_radius_deg, translation_radius=mode_translation_radius,
+              min_weight=min_mode_weight)  # fmt: skip
+    path = None if pred.trajectory is None else to_camera(pred.trajectory)
+    return Prediction(samples=samples, modes=m, trajectory=path, seconds=pred.seconds)
+
+
 def _rt(poses: Tensor) -> tuple[np.ndarray, np.ndarray | None]:
     P = poses.numpy()
     return P[..., :3, :3], (P[..., :3, 3] if P.shape[-1] == 4 else None)
@@ -147,10 +176,12 @@ def overlay(
     *,
     camera_offset: np.ndarray | None = None,
     shape: str | None = None,
+    mesh: Any = None,
     scale: int = 4,
 ) -> np.ndarray:
     """The input ``(3, S, S)`` upscaled ``scale``× with each pose in ``poses (K, n, n)`` drawn over it:
-    the shape's wire-frame (its feature edges) if ``shape`` is given, else its coordinate axes.
+    the wire-frame (feature edges) of the SYMSOL ``shape`` or of a trimesh ``mesh`` (e.g. a BOP model
+    in mm, with ``K`` the crop's intrinsics), else coordinate axes.
     ``camera_offset`` is added to the translation to get the camera-frame one (SYMSOL-T's centre);
     rotation-only poses are drawn at the offset. Returns an ``(S·scale, S·scale, 3)`` uint8 RGB array."""
     import cv2
@@ -163,10 +194,15 @@ def overlay(
     R, t = _rt(poses)
     off = np.zeros(3) if camera_offset is None else np.asarray(camera_offset, dtype=np.float64)
     edges = None
-    if shape is not None:
+    if shape is not None and mesh is None:
         from .data.symsol import make_mesh
 
         mesh = make_mesh(shape)
+    axis_length = 1.0
+    if mesh is not None:
+        mesh = mesh.copy()
+        mesh.merge_vertices()  # BOP models split vertices at sharp edges; adjacency needs them shared
+        axis_length = 0.5 * float(np.ptp(np.asarray(mesh.vertices), axis=0).max())
         sharp = mesh.face_adjacency_angles > np.radians(20)
         idx = mesh.face_adjacency_edges[sharp]
         edges = mesh.vertices[idx]  # (E, 2, 3)
@@ -188,7 +224,7 @@ def overlay(
                     cv2.LINE_AA,
                 )
         else:
-            cv2.drawFrameAxes(img, Ks, None, rvec, tk, 1.0, 2)
+            cv2.drawFrameAxes(img, Ks, None, rvec, tk, axis_length, 2)
     return img
 
 
@@ -224,11 +260,15 @@ def save_prediction(
     K: np.ndarray | None = None,
     camera_offset: np.ndarray | None = None,
     shape: str | None = None,
+    mesh: Any = None,
     gt_pose: Tensor | None = None,
+    gt_rotations: np.ndarray | None = None,
     top_modes: int = 3,
     info: dict[str, Any] | None = None,
 ) -> dict[str, Path]:
-    """Write the files listed in the module docstring into ``out_dir``; returns name → path."""
+    """Write the files listed in the module docstring into ``out_dir``; returns name → path.
+    ``gt_rotations (E, 3, 3)``: the ground truth's equivalent rotations (default: from ``shape``'s
+    symmetries, or the ground truth alone); ``mesh``: the object model for the overlay."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Path] = {}
@@ -265,11 +305,13 @@ def save_prediction(
     if gt_pose is not None:
         gt_R = gt_pose[:3, :3].double()
         gt_t = gt_pose[:3, 3].double().numpy() if gt_pose.shape[-1] == 4 else None
-        if shape is not None:
+        if gt_rotations is not None:
+            gt_R = torch.as_tensor(gt_rotations, dtype=torch.float64)
+        elif shape is not None:
             from .data.symsol import equivalent_poses
 
             gt_R = equivalent_poses(shape, gt_R, step_deg=10.0)
-        gt_R = gt_R.numpy()
+        gt_R = gt_R.reshape(-1, 3, 3).numpy()
     files["so3"] = save_figure(figure_so3(pred, gt_R, title=pred.modes.summary()), out / "so3.png", dpi=110)
     if pred.samples.shape[-1] == 4:
         files["translations"] = save_figure(
@@ -278,7 +320,9 @@ def save_prediction(
     if image is not None and K is not None and len(pred.modes):
         import cv2
 
-        img = overlay(image, pred.modes.poses[:top_modes], K, camera_offset=camera_offset, shape=shape)
+        img = overlay(
+            image, pred.modes.poses[:top_modes], K, camera_offset=camera_offset, shape=shape, mesh=mesh
+        )
         ok, png = cv2.imencode(".png", cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
         assert ok
         files["overlay"] = atomic_write_bytes(out / "overlay.png", png.tobytes())
@@ -291,6 +335,7 @@ def save_prediction(
 
 __all__ = [
     "Prediction",
+    "decode_prediction",
     "figure_so3",
     "figure_trajectory",
     "figure_translations",

@@ -4,6 +4,7 @@ Each function here backs one ``posediff`` subcommand; ``posediff.cli`` only pars
 """
 
 import json
+import math
 import os
 import sys
 import time
@@ -477,10 +478,13 @@ def predict(cfg: DictConfig) -> int:
         device = _device(str(cfg.device))
         module, run = _checkpoint_run(cfg)
         if str(run.data.get("_target_", "")).startswith("posediff.data.bop"):
-            raise ValueError(
-                f"checkpoint {cfg.ckpt_path} is a BOP model: predict takes SYMSOL models; "
-                "posediff eval writes a BOP model's estimates (metrics and the BOP19 CSV)"
-            )
+            if cfg.index is None:
+                raise ValueError(
+                    f"checkpoint {cfg.ckpt_path} is a BOP model: it needs a test target's box, mask and "
+                    "camera — give index=N (a target of its test split), not image="
+                )
+            module.to(_device(str(cfg.device)))
+            return _predict_bop(cfg, module, run, out_dir)
         size = int(run.data.get("image_size", 0) or 0)
         if module.cond_key != "image" or not size:
             raise ValueError(
@@ -534,6 +538,91 @@ def predict(cfg: DictConfig) -> int:
     print(f"{pred.modes.summary()} from {pred.samples.shape[0]} hypotheses in {pred.seconds:.2f} s")
     for k in range(min(len(pred.modes), int(cfg.top_modes))):
         print(f"  mode {k}: weight {float(pred.modes.weights[k]):.3f}")
+    for name, path in files.items():
+        print(f"{name}: {path}")
+    return 0
+
+
+def _predict_bop(cfg: DictConfig, module: Any, run: DictConfig, out_dir: Path) -> int:
+    """``posediff predict`` for a BOP model: test target ``cfg.index`` (in loader order), its
+    hypotheses decoded to the camera frame (mm), modes, and the pictures over the crop."""
+    from .data.bop.roi import crop_intrinsics
+    from .predict import decode_prediction, predict, save_prediction
+
+    try:
+        datamodule = _data(run)
+        n = len(datamodule.test)
+        if not 0 <= int(cfg.index) < n:
+            raise IndexError(f"index={cfg.index} but the test split has {n} targets with visible pixels")
+    except (ValueError, FileNotFoundError, IndexError) as e:
+        print(f"posediff predict: {e}", file=sys.stderr)
+        return 2
+    ds = datamodule.test
+    sample = ds[int(cfg.index)]
+    inst = ds.instances[int(cfg.index)]
+    S, enc = datamodule.image_size, datamodule.encoding
+    K, c, s = sample["K"].double(), sample["centre"].double(), sample["side"].double()
+
+    def decode(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        lead = x.shape[:-2]
+        Kb, cb, sb = K.expand(*lead, 3, 3), c.expand(*lead, 2), s.expand(*lead)
+        if x.shape[-1] == 4:
+            return enc.decode(x[..., :3, :3], x[..., :3, 3], Kb, cb, sb, S)
+        t = sample["translation"].double().expand(*lead, 3)  # rotation-only: the true translation
+        if enc.rotation == "allocentric":
+            from .data.bop.encoding import allocentric_rotation
+
+            return allocentric_rotation(t).transpose(-1, -2) @ x, t
+        return x, t
+
+    pred = predict(
+        module,
+        sample["image"],
+        num_samples=int(cfg.num_samples),
+        trajectory=bool(cfg.trajectory),
+        seed=int(cfg.seed),
+        mode_radius_deg=float(cfg.mode_radius_deg),
+        min_mode_weight=float(cfg.min_mode_weight),
+    )
+    pred = decode_prediction(
+        pred,
+        decode,
+        module.group,
+        mode_radius_deg=float(cfg.mode_radius_deg),
+        mode_translation_radius=0.1 * datamodule.models.diameter(inst.obj_id),
+        min_mode_weight=float(cfg.min_mode_weight),
+    )
+    gt = torch.eye(4, dtype=torch.float64)
+    gt[:3, :3], gt[:3, 3] = sample["rotation"].double(), sample["translation"].double()
+    syms_R, _ = datamodule.models.symmetries(inst.obj_id, max_sym_disc_step=math.pi / 36, evaluation=True)
+    files = save_prediction(
+        pred,
+        out_dir,
+        image=sample["image"],
+        K=crop_intrinsics(inst.K, c.numpy(), float(s), S),
+        mesh=datamodule.models.mesh(inst.obj_id),
+        gt_pose=gt,
+        gt_rotations=gt[:3, :3].numpy() @ syms_R,
+        top_modes=int(cfg.top_modes),
+        info={
+            "ckpt_path": str(cfg.ckpt_path),
+            "index": int(cfg.index),
+            "scene_id": inst.scene_id,
+            "im_id": inst.im_id,
+            "gt_idx": inst.gt_idx,
+            "obj_id": inst.obj_id,
+            "frame": "camera (OpenCV), translation in mm",
+            "group": module.group.name,
+            "sampler": OmegaConf.to_container(run.module.sampler, resolve=True),
+        },
+    )
+    print(f"obj {inst.obj_id} in scene {inst.scene_id} image {inst.im_id}: {pred.modes.summary()} "
+          f"from {pred.samples.shape[0]} hypotheses in {pred.seconds:.2f} s")  # fmt: skip
+    for k in range(min(len(pred.modes), int(cfg.top_modes))):
+        t = pred.modes.poses[k, :3, 3].tolist()
+        print(
+            f"  mode {k}: weight {float(pred.modes.weights[k]):.3f}, t = ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) mm"
+        )
     for name, path in files.items():
         print(f"{name}: {path}")
     return 0
