@@ -87,7 +87,7 @@ def test_eval_writes_table3_and_csv(
     assert result["data"]["translation_stats"]  # decoded with the training split's statistics
     # a step sweep collects into one table with the BOP columns
     sweep = tmp_path / "sweep"
-    assert main(["eval", f"ckpt_path={ckpt}", "max_inputs=4", "-m", "sampler.num_steps=1,2",
+    assert main(["eval", f"ckpt_path={ckpt}", "max_inputs=4", "vsd=false", "-m", "sampler.num_steps=1,2",
                  f"hydra.sweep.dir={sweep}"]) == 0  # fmt: skip
     report = (sweep / "report.md").read_text()
     assert "| MSPD | MSSD | VSD | AR |" in report and report.count("random_walk") == 2

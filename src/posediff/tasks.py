@@ -206,6 +206,7 @@ def _evaluate(module: Any, datamodule: Any, **kwargs: Any) -> dict[str, Any]:
         from .evaluate_bop import evaluate_bop
 
         return evaluate_bop(module, datamodule, **kwargs)
+    kwargs.pop("vsd", None)  # a BOP option
     from .evaluate import evaluate
 
     return evaluate(module, datamodule.test_dataloader(), list(getattr(datamodule, "shapes", [])), **kwargs)
@@ -432,6 +433,7 @@ def evaluate_checkpoint(cfg: DictConfig) -> int:
         num_steps=None,
         seed=int(cfg.seed),
         max_inputs=cfg.max_inputs,
+        vsd=bool(cfg.get("vsd", True)),
     )
     _write_bop_csv(result, datamodule, out_dir)
     result.update(
