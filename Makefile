@@ -43,6 +43,7 @@ walkthrough: ## the Lie group walk-through (notebooks/01) in full mode; figures 
 
 figures: ## regenerate the README figures (docs/images/)
 	POSEDIFF_FAST=0 POSEDIFF_NOTEBOOK_OUT=docs/images MPLBACKEND=Agg $(PY) notebooks/01_lie_groups.py
+	POSEDIFF_FAST=0 POSEDIFF_NOTEBOOK_OUT=docs/images MPLBACKEND=Agg $(PY) notebooks/04_bop.py
 	$(VENV)/bin/posediff data grid out=docs/images/symsolt_grid.png
 
 bench: ## time the Lie group ops against peer libraries (writes benchmarks/results/lie_ops.json)

@@ -25,6 +25,7 @@
 # %%
 import os
 import shutil
+import tempfile
 from pathlib import Path
 
 import matplotlib
@@ -48,8 +49,7 @@ OUT.mkdir(parents=True, exist_ok=True)
 # ## 1. Make a BOP-format dataset
 
 # %%
-ROOT = OUT / "bop_fixture"
-shutil.rmtree(ROOT, ignore_errors=True)
+ROOT = Path(tempfile.mkdtemp(prefix="posediff_bop_")) / "fixture"  # figures go to OUT, data to a temp folder
 print(make_bop_fixture(ROOT, seed=0).line())
 print(sorted(p.name for p in ROOT.iterdir()))
 
@@ -158,3 +158,6 @@ renderer.close()
 # metric. `posediff eval` does this for every BOP19 target and turns the errors into the BOP19 average
 # recalls (MSSD < 0.05…0.5 × diameter, MSPD < 5…50 px × width / 640, VSD 10 τ × 10 θ) and the paper's
 # R@ / T@ / per-axis recalls; `posediff fit +experiment=bop_quickstart` trains on a larger fixture.
+
+# %%
+shutil.rmtree(ROOT.parent, ignore_errors=True)
