@@ -180,6 +180,14 @@ def symmetry_transforms(
     return np.stack(Rs), np.stack(ts)
 
 
+def _apply(P: np.ndarray, A: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """``A_k x + c_k`` for every point ``x`` of ``P (N, 3)`` and every ``(A (C, 3, 3), c (C, 3))``:
+    ``(N, C, 3)``, as one ``(N, 3) × (3, 3C)`` matrix product (a batch of 3×3 products is slow)."""
+    C = len(A)
+    W = A.transpose(2, 0, 1).reshape(3, 3 * C)  # W[j, 3k + i] = A[k, i, j]
+    return (P @ W).reshape(len(P), C, 3) + c[None]
+
+
 def _min_over_syms(B: int, S: int, N: int, chunk_error) -> np.ndarray:  # noqa: ANN001
     """``min_s chunk_error(b, s)`` for every b, evaluating the flat (b, s) pairs in chunks."""
     out = np.empty(B * S)
@@ -206,11 +214,11 @@ def mssd(R_est, t_est, R_gt, t_gt, pts, syms, *, diameter=None) -> np.ndarray | 
         R_e, t_e, R_g, t_g = R_e[todo], t_e[todo], R_g[todo], t_g[todo]
 
         def chunk(b: np.ndarray, s: np.ndarray) -> np.ndarray:
-            # est − gt_sym = (R_e − R_g R_S) x + (t_e − R_g t_S − t_g)
+            # est − gt_sym = (R_e − R_g R_S) x + (t_e − R_g t_S − t_g), all pairs in one matrix product
             A = R_e[b] - R_g[b] @ SR[s]
             c = t_e[b] - np.einsum("cij,cj->ci", R_g[b], St[s]) - t_g[b]
-            D = P @ A.transpose(0, 2, 1) + c[:, None, :]
-            return np.sqrt(np.einsum("cni,cni->cn", D, D).max(axis=1))
+            D = _apply(P, A, c)  # (N, C, 3)
+            return np.sqrt(np.einsum("nci,nci->nc", D, D).max(axis=0))
 
         err[todo] = _min_over_syms(int(todo.sum()), S, N, chunk)
     return _out(err, batched)
@@ -224,17 +232,17 @@ def mspd(R_est, t_est, R_gt, t_gt, K, pts, syms) -> np.ndarray | float:  # noqa:
     B, S, N = len(R_e), len(SR), len(P)
     Ks = _cameras(K, B)
 
-    def project(M: np.ndarray, m: np.ndarray) -> np.ndarray:  # K·(R x + t) = M x + m → (C, N, 2)
-        Y = P @ M.transpose(0, 2, 1) + m[:, None, :]
+    def project(M: np.ndarray, m: np.ndarray) -> np.ndarray:  # K·(R x + t) = M x + m → (N, C, 2)
+        Y = _apply(P, M, m)
         return Y[..., :2] / Y[..., 2:3]
 
     def chunk(b: np.ndarray, s: np.ndarray) -> np.ndarray:
         ub, inv = np.unique(b, return_inverse=True)
-        est = project(Ks[ub] @ R_e[ub], np.einsum("cij,cj->ci", Ks[ub], t_e[ub]))[inv]
+        est = project(Ks[ub] @ R_e[ub], np.einsum("cij,cj->ci", Ks[ub], t_e[ub]))[:, inv]
         Rgs = R_g[b] @ SR[s]
         tgs = np.einsum("cij,cj->ci", R_g[b], St[s]) + t_g[b]
         d = est - project(Ks[b] @ Rgs, np.einsum("cij,cj->ci", Ks[b], tgs))
-        return np.sqrt(np.einsum("cni,cni->cn", d, d).max(axis=1))
+        return np.sqrt(np.einsum("nci,nci->nc", d, d).max(axis=0))
 
     return _out(_min_over_syms(B, S, N, chunk), batched)
 
