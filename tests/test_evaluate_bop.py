@@ -146,3 +146,11 @@ def test_decode_prediction_returns_camera_frame_poses_and_modes(dm: BopDataModul
     assert torch.allclose(pred.samples[:, :3, 3].float(), s["translation"].expand(6, 3), atol=1e-2)
     assert torch.allclose(pred.samples[:, :3, :3].float(), s["rotation"].expand(6, 3, 3), atol=1e-5)
     assert len(pred.modes) == 1 and float(pred.modes.weights[0]) == 1.0
+
+
+def test_object_mean_is_the_mean_of_the_object_rows(dm: BopDataModule) -> None:
+    res = evaluate_bop(Oracle(dm, shift_mm=30.0), dm, vsd=False)
+    rows = list(res["shapes"].values())
+    for key in ("AR_MSSD", "recall_trans@5cm", "recall_x@2cm"):
+        assert res["object_mean"][key] == pytest.approx(float(np.mean([r[key] for r in rows])))
+    assert "| mean of objects |" in run_table(res)

@@ -15,8 +15,8 @@ scored with :mod:`posediff.metrics.bop` / :mod:`posediff.metrics.bop19`:
 Targets the data module dropped (no or too few visible pixels) count as misses. Each estimate is
 paired with the target it was predicted for, so no matching is needed; the BOP19 CSV
 (:func:`posediff.metrics.bop19.write_bop19_csv`) lets the official toolkit score the same estimates
-with its own matching. Rows are per object (``obj_000001`` …) and ``overall`` (recall over all
-targets, as the toolkit; the paper's per-object table averages per object).
+with its own matching. Rows are per object (``obj_000001`` …), ``overall`` (recall over all
+targets, as the toolkit) and ``object_mean`` (the mean of the object rows, the paper's "Avg(30)").
 """
 
 from __future__ import annotations
@@ -251,6 +251,10 @@ def evaluate_bop(
     for obj_id in sorted(by_obj):
         result["shapes"][f"obj_{obj_id:06d}"] = _recalls(by_obj[obj_id], datamodule, vsd)
     result["overall"] = _recalls(records, datamodule, vsd)
+    # the paper's "Avg(30)": every object counts once, whatever its number of targets
+    keys = [k for k in result["overall"] if k != "targets"]
+    rows = list(result["shapes"].values())
+    result["object_mean"] = {k: float(np.nanmean([r[k] for r in rows])) if rows else math.nan for k in keys}
     per_image: dict[tuple[int, int], float] = {}
     for r in records:
         if r["estimated"]:
