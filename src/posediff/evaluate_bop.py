@@ -76,24 +76,14 @@ def predict_targets(
             count += n
             x = x[:, 0].double().cpu()  # the first hypothesis is the estimate
             K, c, s = batch["K"].double(), batch["centre"].double(), batch["side"].double()
-            if x.shape[-1] == 4:
-                R, t = enc.decode(x[:, :3, :3], x[:, :3, 3], K, c, s, out)
-            else:  # a rotation-only model: the true translation decodes the allocentric rotation
-                t = batch["translation"].double()
-                R = x if enc.rotation == "egocentric" else _ego_from_allo(x, t)
+            # a rotation-only model is decoded (and scored) at the true translation
+            R, t = enc.decode_pose(x, K, c, s, out, translation=batch["translation"].double())
             for k in range(n):
                 key = (int(batch["scene_id"][k]), int(batch["im_id"][k]), int(batch["gt_idx"][k]))
                 estimates[key] = {"R": R[k].numpy(), "t": t[k].numpy(), "seconds": dt / n}
     finally:
         module.train(was_training)
     return estimates, seconds, count
-
-
-def _ego_from_allo(R_allo: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-    """Egocentric rotations of allocentric ones at translations ``t``."""
-    from .data.bop.encoding import allocentric_rotation
-
-    return allocentric_rotation(t).transpose(-1, -2) @ R_allo
 
 
 class _Depths:

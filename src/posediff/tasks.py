@@ -566,16 +566,11 @@ def _predict_bop(cfg: DictConfig, module: Any, run: DictConfig, out_dir: Path) -
     K, c, s = sample["K"].double(), sample["centre"].double(), sample["side"].double()
 
     def decode(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        lead = x.shape[:-2]
-        Kb, cb, sb = K.expand(*lead, 3, 3), c.expand(*lead, 2), s.expand(*lead)
-        if x.shape[-1] == 4:
-            return enc.decode(x[..., :3, :3], x[..., :3, 3], Kb, cb, sb, S)
-        t = sample["translation"].double().expand(*lead, 3)  # rotation-only: the true translation
-        if enc.rotation == "allocentric":
-            from .data.bop.encoding import allocentric_rotation
-
-            return allocentric_rotation(t).transpose(-1, -2) @ x, t
-        return x, t
+        lead = x.shape[:-2]  # rotation-only models are decoded at the true translation
+        t = sample["translation"].double().expand(*lead, 3)
+        return enc.decode_pose(
+            x, K.expand(*lead, 3, 3), c.expand(*lead, 2), s.expand(*lead), S, translation=t
+        )
 
     pred = predict(
         module,

@@ -154,3 +154,25 @@ def test_encoding_refuses_bad_settings() -> None:
     with pytest.raises(RuntimeError, match="fit_stats"):
         PoseEncoding().stats()
     assert math.isfinite(PoseEncoding("egocentric", [0, 0, 1], [1, 1, 1]).stats()["mean"][2])
+
+
+@pytest.mark.parametrize("rotation", ["allocentric", "egocentric"])
+def test_decode_pose_of_full_and_rotation_only_poses(rotation: str, generator: torch.Generator) -> None:
+    R, t = _random_poses(8, generator)
+    K = torch.from_numpy(K_TLESS).expand(8, 3, 3)
+    centre, side = (
+        torch.full((8, 2), 300.0, dtype=torch.float64),
+        torch.full((8,), 120.0, dtype=torch.float64),
+    )
+    enc = PoseEncoding(rotation, [0.0, 0.0, 300.0], [0.1, 0.1, 100.0])
+    R_net, delta = enc.encode(R, t, K, centre, side, 224)
+    x = torch.eye(4, dtype=torch.float64).repeat(8, 1, 1)
+    x[:, :3, :3], x[:, :3, 3] = R_net, delta
+    R4, t4 = enc.decode_pose(x, K, centre, side, 224)
+    R3, t3 = enc.decode_pose(R_net, K, centre, side, 224, translation=t)
+    assert_close(R4, R, atol=1e-12, rtol=0)
+    assert_close(t4, t, atol=1e-9, rtol=1e-12)
+    assert_close(R3, R, atol=1e-12, rtol=0)
+    assert t3 is t
+    with pytest.raises(ValueError, match="given translation"):
+        enc.decode_pose(R_net, K, centre, side, 224)

@@ -139,10 +139,24 @@ class PoseEncoding:
         tz = raw[..., 2:3] * out / side
         ray = torch.linalg.solve(K, torch.cat([uv, torch.ones_like(tz)], -1)[..., None])[..., 0]
         t = ray / ray[..., 2:3] * tz
-        R = R_net
+        return self.camera_rotation(R_net, t), t
+
+    def camera_rotation(self, R_net: Tensor, t: Tensor) -> Tensor:
+        """The camera-frame rotation of network rotations ``R_net (…, 3, 3)`` at translations ``t (…, 3)``."""
         if self.rotation == "allocentric":
-            R = allocentric_rotation(t).transpose(-1, -2) @ R_net
-        return R, t
+            return allocentric_rotation(t).transpose(-1, -2) @ R_net
+        return R_net
+
+    def decode_pose(
+        self, x: Tensor, K: Tensor, centre: Tensor, side: Tensor, out: int, translation: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """:meth:`decode` of network poses ``x`` (``[R_net | δ̂]`` (…, 4, 4)); a rotation-only model's
+        ``R_net`` (…, 3, 3) needs the camera-frame ``translation`` (e.g. the true one), which it keeps."""
+        if x.shape[-1] == 4:
+            return self.decode(x[..., :3, :3], x[..., :3, 3], K, centre, side, out)
+        if translation is None:
+            raise ValueError("a rotation-only pose decodes at a given translation")
+        return self.camera_rotation(x, translation), translation
 
 
 __all__ = ["ROTATIONS", "PoseEncoding", "allocentric_rotation"]
