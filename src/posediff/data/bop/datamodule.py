@@ -46,21 +46,28 @@ from .reader import (
 from .roi import clip_box, clip_boxes, crop, dzi, dzi_many
 
 
+def _keep(
+    bbox_visib: Any, px_count_visib: Any, visib_fract: Any, min_visible_px: int, min_visib_fract: float
+) -> Any:
+    """The instance filter (module docstring) on scalars or arrays: ``bbox_visib (…, 4)``."""
+    return (
+        (bbox_visib[..., 2] > 1)
+        & (bbox_visib[..., 3] > 1)
+        & (px_count_visib > min_visible_px)
+        & (visib_fract >= min_visib_fract)
+    )
+
+
 def keep_instance(inst: Instance, min_visible_px: int, min_visib_fract: float) -> bool:
     """The instance filter (module docstring)."""
-    w, h = inst.bbox_visib[2], inst.bbox_visib[3]
-    return w > 1 and h > 1 and inst.px_count_visib > min_visible_px and inst.visib_fract >= min_visib_fract
+    return bool(
+        _keep(inst.bbox_visib, inst.px_count_visib, inst.visib_fract, min_visible_px, min_visib_fract)
+    )
 
 
 def keep_mask(table: InstanceTable, min_visible_px: int, min_visib_fract: float) -> np.ndarray:
     """:func:`keep_instance` for every instance of a table, ``(N,)`` bool."""
-    wh = table.bbox_visib[:, 2:]
-    return (
-        (wh[:, 0] > 1)
-        & (wh[:, 1] > 1)
-        & (table.px_count_visib > min_visible_px)
-        & (table.visib_fract >= min_visib_fract)
-    )
+    return _keep(table.bbox_visib, table.px_count_visib, table.visib_fract, min_visible_px, min_visib_fract)
 
 
 class BopInstanceDataset(Dataset):
@@ -283,8 +290,9 @@ class BopDataModule(L.LightningDataModule):
             self.targets = [i for i in all_inst.instances if i.visib_fract >= 0.1]
         if self.max_test:
             self.targets = self.targets[: self.max_test]
-        kept = [i for i in self.targets if keep_instance(i, self.min_visible_px, 0.0)]
-        self.skipped = [i for i in self.targets if not keep_instance(i, self.min_visible_px, 0.0)]
+        keep = [keep_instance(i, self.min_visible_px, 0.0) for i in self.targets]
+        kept = [i for i, k in zip(self.targets, keep, strict=True) if k]
+        self.skipped = [i for i, k in zip(self.targets, keep, strict=True) if not k]
         self.summary["test"] = {"targets": len(self.targets), "kept": len(kept), "skipped": len(self.skipped)}
         return kept
 

@@ -30,36 +30,34 @@ def dzi(
 ) -> tuple[np.ndarray, float]:
     """``(centre (2,), side)`` of the square crop of ``bbox = [x, y, w, h]`` (module docstring);
     jittered when ``rng`` is given (training), centred otherwise (test)."""
-    x, y, w, h = (float(v) for v in np.asarray(bbox, dtype=np.float64).reshape(4))
-    centre = np.array([x + 0.5 * w, y + 0.5 * h])
-    side = max(w, h)
-    if rng is not None:
-        centre = centre + np.array([w, h]) * rng.uniform(-shift, shift, size=2)
-        side = side * (1.0 + scale * rng.uniform(-1.0, 1.0))
-    side = min(side * pad, float(max(image_hw)))
-    return centre, max(side, 1.0)
+    centre, side = dzi_many(bbox, np.asarray(image_hw), rng, shift=shift, scale=scale, pad=pad)
+    return centre[0], float(side[0])
 
 
 def dzi_many(
     bbox: np.ndarray,
     image_hw: np.ndarray,
-    rng: np.random.Generator,
+    rng: np.random.Generator | None,
     *,
     shift: float = 0.25,
     scale: float = 0.25,
     pad: float = 1.5,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`dzi` (jittered) for ``bbox (N, 4)`` in images ``image_hw (N, 2)``: ``(centres (N, 2), sides (N,))``."""
+    """:func:`dzi` for ``bbox (N, 4)`` in images ``image_hw (N, 2)`` (or one ``(2,)``):
+    ``(centres (N, 2), sides (N,))``."""
     bbox = np.asarray(bbox, dtype=np.float64).reshape(-1, 4)
     wh = bbox[:, 2:]
-    centre = bbox[:, :2] + 0.5 * wh + wh * rng.uniform(-shift, shift, size=(len(bbox), 2))
-    side = wh.max(axis=1) * (1.0 + scale * rng.uniform(-1.0, 1.0, size=len(bbox)))
+    centre = bbox[:, :2] + 0.5 * wh
+    side = wh.max(axis=1)
+    if rng is not None:
+        centre = centre + wh * rng.uniform(-shift, shift, size=(len(bbox), 2))
+        side = side * (1.0 + scale * rng.uniform(-1.0, 1.0, size=len(bbox)))
     side = np.minimum(side * pad, np.asarray(image_hw, dtype=np.float64).reshape(-1, 2).max(axis=1))
     return centre, np.maximum(side, 1.0)
 
 
 def clip_boxes(bbox: np.ndarray, image_hw: np.ndarray) -> np.ndarray:
-    """:func:`clip_box` for ``bbox (N, 4)`` in images ``image_hw (N, 2)``."""
+    """``[x, y, w, h]`` boxes ``(N, 4)`` clipped to their images ``image_hw (N, 2)`` (or one ``(2,)``)."""
     bbox = np.asarray(bbox, dtype=np.float64).reshape(-1, 4)
     H, W = np.asarray(image_hw, dtype=np.float64).reshape(-1, 2).T
     x1, y1 = np.clip(bbox[:, 0], 0, W), np.clip(bbox[:, 1], 0, H)
@@ -69,11 +67,7 @@ def clip_boxes(bbox: np.ndarray, image_hw: np.ndarray) -> np.ndarray:
 
 def clip_box(bbox: np.ndarray, image_hw: tuple[int, int]) -> np.ndarray:
     """``[x, y, w, h]`` clipped to the image (the authors clip the training box)."""
-    x, y, w, h = np.asarray(bbox, dtype=np.float64).reshape(4)
-    H, W = image_hw
-    x1, y1 = np.clip([x, y], 0, [W, H])
-    x2, y2 = np.clip([x + w, y + h], 0, [W, H])
-    return np.array([x1, y1, max(x2 - x1, 0.0), max(y2 - y1, 0.0)])
+    return clip_boxes(bbox, np.asarray(image_hw))[0]
 
 
 def crop_matrix(centre: np.ndarray, side: float, out: int) -> np.ndarray:
