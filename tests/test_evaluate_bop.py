@@ -26,6 +26,7 @@ class Oracle(nn.Module):
         super().__init__()
         self.p = nn.Parameter(torch.zeros(()))
         self.sampler = _Sampler()
+        self.cond_key = "image"
         poses = []
         for batch in dm.test_dataloader():
             R, t = batch["rotation"].double(), batch["translation"].double()

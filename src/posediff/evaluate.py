@@ -17,7 +17,7 @@ The result after the last step is what is reported — never the best step along
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import torch
@@ -84,23 +84,10 @@ def _evaluate(
     translation_thresholds: Sequence[float],
     max_inputs: int | None,
 ) -> dict[str, Any]:
-    gen = torch.Generator(device=module.device).manual_seed(int(seed))
     per_shape: dict[str, dict[str, list[torch.Tensor]]] = {}
     has_t = module.group.matrix_dim == 4
-    seconds = 0.0
-    count = 0
-    for batch in loader:
-        if max_inputs is not None and count >= max_inputs:
-            break
-        batch = {k: v.to(module.device) for k, v in batch.items() if isinstance(v, torch.Tensor)}
-        if max_inputs is not None and count + int(batch["pose"].shape[0]) > max_inputs:
-            batch = {k: v[: max_inputs - count] for k, v in batch.items()}
-        start = time.perf_counter()
-        x = module.sample(batch[module.cond_key], num_samples, num_steps, sampler=sampler, generator=gen)
-        if x.is_cuda:
-            torch.cuda.synchronize(x.device)
-        seconds += time.perf_counter() - start
-        count += int(batch["pose"].shape[0])
+    run = SampledBatches(module, loader, num_samples, num_steps, sampler, seed, max_inputs)
+    for batch, x in run:
         rot = x[..., :3, :3].double()
         for k in batch["shape"].unique().tolist():
             shape = SHAPES[k]
@@ -135,14 +122,60 @@ def _evaluate(
     keys = [k for row in result["shapes"].values() for k in row if k != "inputs"]
     keys = list(dict.fromkeys(keys))
     result["overall"] = {k: _nanmean([row[k] for row in result["shapes"].values() if k in row]) for k in keys}
-    result["seconds_per_input"] = seconds / max(count, 1)
-    result["inputs"] = count
-    result["num_samples"] = int(num_samples)
-    s = sampler or module.sampler
-    steps = num_steps if num_steps is not None else s.num_steps
-    result["num_steps"] = steps if steps is not None else len(s.diffusion.schedule.timesteps(None))
-    result["sampler"] = getattr(s, "name", type(s).__name__)
+    result.update(run.summary())
     return result
+
+
+class SampledBatches:
+    """The batches of ``loader`` (tensors on the module's device; at most ``max_inputs`` inputs in
+    all) with ``num_samples`` hypotheses for each input, ``(batch, x (B, N, n, n))``, timing the
+    sampler alone (seeded with ``seed``); :meth:`summary` gives the result fields both evaluations
+    report: ``seconds_per_input``, ``inputs``, ``num_samples``, ``num_steps``, ``sampler``."""
+
+    def __init__(
+        self,
+        module: PoseDiffusionModule,
+        loader: DataLoader,
+        num_samples: int,
+        num_steps: int | None,
+        sampler: Sampler | None,
+        seed: int,
+        max_inputs: int | None,
+    ) -> None:
+        self.module, self.loader, self.num_samples, self.num_steps = module, loader, num_samples, num_steps
+        self.sampler, self.seed, self.max_inputs = sampler, seed, max_inputs
+        self.seconds = 0.0
+        self.count = 0
+
+    def __iter__(self) -> Iterator[tuple[dict[str, torch.Tensor], torch.Tensor]]:
+        module, limit = self.module, self.max_inputs
+        gen = torch.Generator(device=module.device).manual_seed(int(self.seed))
+        for batch in self.loader:
+            if limit is not None and self.count >= limit:
+                break
+            batch = {k: v.to(module.device) for k, v in batch.items() if isinstance(v, torch.Tensor)}
+            if limit is not None and self.count + int(batch["pose"].shape[0]) > limit:
+                batch = {k: v[: limit - self.count] for k, v in batch.items()}
+            start = time.perf_counter()
+            x = module.sample(
+                batch[module.cond_key], self.num_samples, self.num_steps, sampler=self.sampler, generator=gen
+            )
+            if x.is_cuda:
+                torch.cuda.synchronize(x.device)
+            self.seconds += time.perf_counter() - start
+            self.count += int(batch["pose"].shape[0])
+            yield batch, x
+
+    def summary(self) -> dict[str, Any]:
+        s = self.sampler or self.module.sampler
+        steps = self.num_steps if self.num_steps is not None else s.num_steps
+        return {
+            "seconds_per_input": self.seconds / max(self.count, 1),
+            "inputs": self.count,
+            "num_samples": int(self.num_samples),
+            "num_steps": steps if steps is not None else len(s.diffusion.schedule.timesteps(None)),
+            "sampler": getattr(s, "name", type(s).__name__),
+        }
 
 
 def _fmt_thr(x: float) -> str:

@@ -22,7 +22,6 @@ targets, as the toolkit) and ``object_mean`` (the mean of the object rows, the p
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -32,6 +31,7 @@ import torch
 from .data.bop.datamodule import BopDataModule
 from .data.bop.reader import Instance, read_depth
 from .diffusion import Sampler
+from .evaluate import SampledBatches
 from .metrics import bop, bop19
 from .module import PoseDiffusionModule
 
@@ -49,41 +49,31 @@ def predict_targets(
     sampler: Sampler | None = None,
     seed: int = 0,
     max_inputs: int | None = None,
-) -> tuple[dict[tuple[int, int, int], dict[str, Any]], float, int]:
+) -> tuple[dict[tuple[int, int, int], dict[str, Any]], dict[str, Any]]:
     """The estimate for each test target the data module keeps: ``{(scene, im, gt_idx): {R, t, seconds}}``
-    (camera frame, mm), the sampling seconds and the number of inputs."""
+    (camera frame, mm), and the run's timing and sampler fields (:meth:`SampledBatches.summary`)."""
     was_training = module.training
     module.eval()
-    gen = torch.Generator(device=module.device).manual_seed(int(seed))
     enc, out = datamodule.encoding, datamodule.image_size
     estimates: dict[tuple[int, int, int], dict[str, Any]] = {}
-    seconds, count = 0.0, 0
+    run = SampledBatches(
+        module, datamodule.test_dataloader(), num_samples, num_steps, sampler, seed, max_inputs
+    )
     try:
-        for batch in datamodule.test_dataloader():
-            if max_inputs is not None and count >= max_inputs:
-                break
-            n = int(batch["pose"].shape[0])
-            if max_inputs is not None and count + n > max_inputs:
-                batch = {k: v[: max_inputs - count] for k, v in batch.items()}
-                n = max_inputs - count
-            image = batch["image"].to(module.device)
-            start = time.perf_counter()
-            x = module.sample(image, num_samples, num_steps, sampler=sampler, generator=gen)
-            if x.is_cuda:
-                torch.cuda.synchronize(x.device)
-            dt = time.perf_counter() - start
-            seconds += dt
-            count += n
+        before = 0.0
+        for batch, x in run:
+            dt, before = run.seconds - before, run.seconds
+            n = int(x.shape[0])
             x = x[:, 0].double().cpu()  # the first hypothesis is the estimate
-            K, c, s = batch["K"].double(), batch["centre"].double(), batch["side"].double()
+            b = {k: batch[k].double().cpu() for k in ("K", "centre", "side", "translation")}
             # a rotation-only model is decoded (and scored) at the true translation
-            R, t = enc.decode_pose(x, K, c, s, out, translation=batch["translation"].double())
+            R, t = enc.decode_pose(x, b["K"], b["centre"], b["side"], out, translation=b["translation"])
             for k in range(n):
                 key = (int(batch["scene_id"][k]), int(batch["im_id"][k]), int(batch["gt_idx"][k]))
                 estimates[key] = {"R": R[k].numpy(), "t": t[k].numpy(), "seconds": dt / n}
     finally:
         module.train(was_training)
-    return estimates, seconds, count
+    return estimates, run.summary()
 
 
 class _Depths:
@@ -220,7 +210,7 @@ def evaluate_bop(
 ) -> dict[str, Any]:
     """Per-object and overall BOP19 / paper metrics (module docstring), the estimates as BOP19 CSV
     rows (``estimates``), and timing. ``max_inputs`` scores only the targets predicted."""
-    estimates, seconds, count = predict_targets(
+    estimates, timing = predict_targets(
         module,
         datamodule,
         num_samples=num_samples,
@@ -263,18 +253,8 @@ def evaluate_bop(
         for r in records
         if r["estimated"]
     ]
-    result.update(
-        targets=len(records),
-        skipped=sum(1 for r in records if not r["estimated"]),
-        inputs=count,
-        seconds_per_input=seconds / max(count, 1),
-        num_samples=int(num_samples),
-        vsd=bool(vsd),
-    )
-    s = sampler or module.sampler
-    steps = num_steps if num_steps is not None else s.num_steps
-    result["num_steps"] = steps if steps is not None else len(s.diffusion.schedule.timesteps(None))
-    result["sampler"] = getattr(s, "name", type(s).__name__)
+    result.update(targets=len(records), skipped=sum(1 for r in records if not r["estimated"]), **timing)
+    result["vsd"] = bool(vsd)
     return result
 
 
