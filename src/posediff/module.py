@@ -12,6 +12,17 @@ The network sees ``Log(X̃)`` (the tangent vector of the noisy pose, paper §4.4
 "matrix"``: the 3×3 rotation, plus the translation column for 4×4 groups — smooth everywhere, no
 re-wrapping of the rotation vector at θ = π), and the continuous noise-level index
 ``schedule.level(σ)`` (the authors feed the level index).
+
+**Anchored denoiser** (``anchor=True``, beyond the paper): with a
+:class:`~posediff.nn.PoseEncoder`, the encoder also estimates one pose ``X̂`` per input and the
+denoiser sees the noisy pose *relative to it*, ``Log(X̂⁻¹ X̃)`` (on R³×SO(3) that is
+``(t̃ − t̂, Log(R̂ᵀR̃))``). The score is a right-trivialised tangent at ``X̃``, which a left
+multiplication leaves unchanged, so the target, the samplers and the prior are the paper's; with
+``X̂ = I`` the network is exactly the paper's. The anchor travels packed behind the feature in the
+condition tensor (``(B, F + n²)``), so samplers, ``modes()``, ``log_likelihood()``, eval and predict
+see the same interface. It is trained through the diffusion loss alone (``aux_weight=0``: no
+symmetry labels) or with the symmetry-aware regression loss as an auxiliary term (``aux_weight``).
+A locate-then-crop encoder's locator is trained by regression on the translation (``locate_weight``).
 """
 
 from collections.abc import Callable
@@ -22,6 +33,8 @@ import torch
 from torch import Tensor, nn
 
 from .diffusion import Diffusion, Sampler
+from .nn.pose_encoder import Encoding
+from .symmetry import SHAPES, symsol_chordal_sq
 
 
 class PoseDiffusionModule(L.LightningModule):
@@ -38,6 +51,14 @@ class PoseDiffusionModule(L.LightningModule):
         weight_decay: > 0 uses AdamW (the authors' code: 1e-4).
         pose_input: what the denoiser sees of the noisy pose: ``"tangent"`` (``Log X̃``, the paper)
             or ``"matrix"`` (the top 3 rows of ``X̃``, flattened); see :meth:`pose_input_dim`.
+        anchor: the anchored denoiser (module docstring); needs an encoder that returns an
+            :class:`~posediff.nn.Encoding` (``posediff.nn.PoseEncoder``).
+        aux_weight: weight of the symmetry-aware regression loss on the anchor (rotation:
+            ``min_S ‖R̂ − R·S‖²_F``; translation: squared error); 0 = diffusion loss only.
+        locate_weight: weight of the locator's translation regression (locate-then-crop encoders).
+        grad_probe_every: every N training steps, log the encoder's gradient norm from the rotation
+            and the translation parts of the diffusion loss separately (two extra backward passes;
+            0 = never).
     """
 
     POSE_INPUTS = ("tangent", "matrix")
@@ -56,6 +77,10 @@ class PoseDiffusionModule(L.LightningModule):
         decay_start: float = 0.5,
         weight_decay: float = 0.0,
         pose_input: str = "tangent",
+        anchor: bool = False,
+        aux_weight: float = 0.0,
+        locate_weight: float = 1.0,
+        grad_probe_every: int = 0,
     ) -> None:
         super().__init__()
         if pose_input not in self.POSE_INPUTS:
@@ -73,6 +98,13 @@ class PoseDiffusionModule(L.LightningModule):
         self.lr_final = float(lr_final)
         self.decay_start = float(decay_start)
         self.weight_decay = float(weight_decay)
+        self.anchor = bool(anchor)
+        self.aux_weight = float(aux_weight)
+        self.locate_weight = float(locate_weight)
+        self.grad_probe_every = int(grad_probe_every)
+        n = int(self.group.matrix_dim)
+        #: width of the anchor packed behind the feature in the condition (0 without an anchor)
+        self.anchor_width = n * n if self.anchor else 0
         #: the resolved run configuration, stored in checkpoints when set (by ``posediff fit``)
         self.config: dict[str, Any] | None = None
         #: the training loss of every step (floats), for run summaries
@@ -84,8 +116,50 @@ class PoseDiffusionModule(L.LightningModule):
 
     # ------------------------------------------------------------------ the network
     def encode(self, cond: Any) -> Tensor:
-        """The per-input feature, computed once per input."""
-        return self.encoder(cond)
+        """The per-input condition the denoiser reads, computed once per input: the feature, with the
+        anchor pose packed behind it when ``anchor`` is on (``(B, F + n²)``)."""
+        return self.pack(self.encode_full(cond))
+
+    def encode_full(self, cond: Any, pose: Tensor | None = None) -> Encoding:
+        """The encoder's whole output as an :class:`~posediff.nn.Encoding` (a plain encoder's
+        feature gets the identity as its anchor). ``pose``: the training target, for encoders that
+        place training crops by it."""
+        if isinstance(self.encoder, nn.Identity):
+            out = cond
+        else:
+            out = self.encoder(cond, pose=pose) if _takes_pose(self.encoder) else self.encoder(cond)
+        if isinstance(out, Encoding):
+            return out
+        if self.anchor:
+            raise ValueError(
+                "module.anchor=true needs an encoder that estimates a pose (posediff.nn.PoseEncoder: encoder=pose)"
+            )
+        return Encoding(out, rotation=None)  # type: ignore[arg-type]
+
+    def anchor_pose(self, enc: Encoding) -> Tensor:
+        """The anchor as a group element ``(B, n, n)`` (``[R̂ | t̂]`` for 4×4 groups)."""
+        n = int(self.group.matrix_dim)
+        if n == 3:
+            return enc.rotation
+        x = torch.zeros(*enc.rotation.shape[:-2], 4, 4, dtype=enc.rotation.dtype, device=enc.rotation.device)
+        x[..., :3, :3] = enc.rotation
+        if enc.translation is not None:
+            x[..., :3, 3] = enc.translation
+        x[..., 3, 3] = 1.0
+        return x
+
+    def pack(self, enc: Encoding) -> Tensor:
+        """The condition tensor of an encoding: the feature, or ``[feature | anchor entries]``."""
+        if not self.anchor:
+            return enc.feature
+        return torch.cat([enc.feature, self.anchor_pose(enc).flatten(-2)], dim=-1)
+
+    def unpack(self, cond: Tensor) -> tuple[Tensor, Tensor | None]:
+        """``(feature, anchor (B, n, n) or None)`` of a condition tensor made by :meth:`pack`."""
+        if not self.anchor:
+            return cond, None
+        n = int(self.group.matrix_dim)
+        return cond[..., : -self.anchor_width], cond[..., -self.anchor_width :].unflatten(-1, (n, n))
 
     @staticmethod
     def pose_input_dim(group: Any, pose_input: str) -> int:
@@ -103,8 +177,13 @@ class PoseDiffusionModule(L.LightningModule):
         return self.group.log(x_noisy)
 
     def forward(self, x_noisy: Tensor, sigma: Tensor, feature: Tensor) -> Tensor:
-        """Raw network output at noisy poses ``x_noisy (B, N, n, n)`` with levels ``sigma (B, N)``."""
+        """Raw network output at noisy poses ``x_noisy (B, N, n, n)`` with levels ``sigma (B, N)``;
+        ``feature`` is the condition of :meth:`encode` (with the anchor when ``anchor`` is on)."""
         level = self.diffusion.schedule.level(sigma)
+        feature, anchor = self.unpack(feature)
+        if anchor is not None:
+            g = self.group
+            x_noisy = g.compose(g.inverse(anchor).unsqueeze(-3), x_noisy)
         return self.denoiser(self.pose_features(x_noisy), level, feature)
 
     def denoise_fn(self) -> Callable[[Tensor, Tensor, Tensor], Tensor]:
@@ -113,24 +192,78 @@ class PoseDiffusionModule(L.LightningModule):
 
     # ------------------------------------------------------------------ training
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
-        feature = self.encode(batch[self.cond_key])
+        enc = self.encode_full(batch[self.cond_key], pose=batch["pose"])
         noisy = self.diffusion.perturb(batch["pose"], num_noisy=self.num_noisy)
-        out = self(noisy.x_noisy, noisy.sigma, feature)
-        loss = self.diffusion.loss(out, noisy)
+        out = self(noisy.x_noisy, noisy.sigma, self.pack(enc))
+        diffusion_loss = self.diffusion.loss(out, noisy)
+        bs = batch["pose"].shape[0]
+        loss = diffusion_loss + self.side_losses(batch, enc, "train")
         if not torch.isfinite(loss):
             raise FloatingPointError(f"non-finite training loss {loss.item()} at step {self.global_step}")
-        self.log("train/loss", loss, prog_bar=True, batch_size=batch["pose"].shape[0])
+        if self.grad_probe_every > 0 and self.global_step % self.grad_probe_every == 0:
+            self._probe_gradients(out, noisy)
+        self.log("train/loss", loss, prog_bar=True, batch_size=bs)
+        if loss is not diffusion_loss:
+            self.log("train/diffusion_loss", diffusion_loss, batch_size=bs)
         self.loss_history.append(float(loss.detach()))
         return loss
 
+    def side_losses(self, batch: dict[str, Tensor], enc: Encoding, stage: str) -> Tensor:
+        """The locator's regression and the anchor's symmetry-aware loss (weighted), logged per part;
+        the anchor's symmetric rotation error in degrees is logged whenever there is an anchor (the
+        probe "does the encoder see orientation")."""
+        bs = batch["pose"].shape[0]
+        total = torch.zeros((), device=batch["pose"].device)
+        pose = batch["pose"]
+        if enc.located is not None:
+            locate = (enc.located - pose[:, :3, 3]).square().sum(-1).mean()
+            self.log(f"{stage}/locate_loss", locate, batch_size=bs)
+            total = total + self.locate_weight * locate
+        if enc.rotation is None or "shape" not in batch:
+            return total
+        rot = symsol_chordal_sq(batch["shape"], enc.rotation, batch["rotation"].to(enc.rotation.dtype))
+        deg = torch.rad2deg(2.0 * torch.asin((rot.clamp_min(0.0) / 8.0).sqrt().clamp(max=1.0)))
+        self.log(f"{stage}/anchor_deg", deg.mean(), prog_bar=stage == "val", batch_size=bs)
+        if stage == "val":
+            for k in batch["shape"].unique().tolist():
+                sel = batch["shape"] == k
+                self.log(f"val/anchor_deg_{SHAPES[int(k)]}", deg[sel].mean(), batch_size=int(sel.sum()))
+        if self.aux_weight > 0:
+            aux = rot.mean()
+            if enc.translation is not None and pose.shape[-1] == 4:
+                aux = aux + (enc.translation - pose[:, :3, 3]).square().sum(-1).mean()
+            self.log(f"{stage}/aux_loss", aux, batch_size=bs)
+            total = total + self.aux_weight * aux
+        return total
+
+    def _probe_gradients(self, out: Tensor, noisy: Any) -> None:
+        """Log ``grad/encoder_rotation`` and ``grad/encoder_translation``: the encoder's gradient norm
+        from the rotation and the translation parts of the diffusion loss."""
+        params = [p for p in self.encoder.parameters() if p.requires_grad]
+        if not params:
+            return
+        parts = self.diffusion.loss_parts(out, noisy)
+        for name, part in parts.items():
+            grads = torch.autograd.grad(part, params, retain_graph=True, allow_unused=True)
+            norm = torch.sqrt(sum((g.square().sum() for g in grads if g is not None), torch.zeros(())))
+            self.log(f"grad/encoder_{name}", norm, batch_size=out.shape[0])
+
     @torch.no_grad()
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
-        """The training objective on held-out inputs (``val/loss``: what "best" checkpoints track)."""
-        feature = self.encode(batch[self.cond_key])
+        """The training objective on held-out inputs (``val/loss``: what "best" checkpoints track;
+        ``val/rotation_loss`` its rotation part; ``val/anchor_deg`` the anchor's error)."""
+        enc = self.encode_full(batch[self.cond_key])
+        feature = self.pack(enc)
         gen = torch.Generator(device=feature.device).manual_seed(1000 + batch_idx)
         noisy = self.diffusion.perturb(batch["pose"], num_noisy=self.num_noisy, generator=gen)
-        loss = self.diffusion.loss(self(noisy.x_noisy, noisy.sigma, feature), noisy)
-        self.log("val/loss", loss, prog_bar=True, batch_size=batch["pose"].shape[0])
+        out = self(noisy.x_noisy, noisy.sigma, feature)
+        loss = self.diffusion.loss(out, noisy)
+        bs = batch["pose"].shape[0]
+        self.log("val/loss", loss, prog_bar=True, batch_size=bs)
+        parts = self.diffusion.loss_parts(out, noisy)
+        if "rotation" in parts:
+            self.log("val/rotation_loss", parts["rotation"], batch_size=bs)
+        self.side_losses(batch, enc, "val")
         return loss
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
@@ -182,3 +315,13 @@ class PoseDiffusionModule(L.LightningModule):
             dtype=feature.dtype,
             device=feature.device,
         )
+
+
+def _takes_pose(encoder: nn.Module) -> bool:
+    """Whether ``encoder.forward`` accepts the training target (``pose=``) to place its crops."""
+    import inspect
+
+    try:
+        return "pose" in inspect.signature(encoder.forward).parameters
+    except (TypeError, ValueError):
+        return False

@@ -167,6 +167,21 @@ class Diffusion:
             err = err / self.kernel.component_sigma(batch.sigma, output).square()
         return err.sum(-1).mean()
 
+    def loss_parts(self, output: Tensor, batch: NoisyBatch) -> dict[str, Tensor]:
+        """The tangent-L2 loss split into its ``rotation`` and (groups with one) ``translation``
+        components, unweighted by ``rotation_weight`` / ``translation_weight`` — a diagnostic (held-out
+        rotation loss, per-part gradients), whatever ``loss`` trains."""
+        err = (output - batch.target.to(output.dtype)).square()
+        if self.weighting == "none":
+            err = err / self.kernel.component_sigma(batch.sigma, output).square()
+        rot = self.group.rotation_slice
+        parts = {"rotation": err[..., rot].sum(-1).mean()}
+        if (rot.stop - rot.start) < self.group.dim:
+            keep = torch.ones(self.group.dim, dtype=torch.bool, device=err.device)
+            keep[rot] = False
+            parts["translation"] = err[..., keep].sum(-1).mean()
+        return parts
+
     # ------------------------------------------------------------------ sampling
     def prior(
         self,

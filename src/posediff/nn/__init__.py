@@ -5,21 +5,28 @@
   paper Eq. 13) and :class:`ScaleBiasBlock` ("scale_bias", FiLM).
 * :class:`MLPDenoiser`: the reference head, tangent vector + noise level + condition → tangent vector.
 * :class:`ResNetEncoder`: image → condition vector (torchvision ResNet + the paper's feature head).
+* :class:`PoseEncoder`: image → :class:`Encoding` (feature + an anchor pose from a pose head;
+  optionally locate-then-crop), for the anchored denoiser and the regression baselines.
 """
 
 from .blocks import ACTIVATIONS, ConditionedBlock, FourierBlock, LecunLinear, ScaleBiasBlock, make_activation
 from .denoiser import MLPDenoiser
 from .embedding import SinusoidalEmbedding
 from .encoder import ResNetEncoder
+from .pose_encoder import Encoding, PoseEncoder, ray_rotation, rotation_from_6d
 
 __all__ = [
     "ACTIVATIONS",
     "ConditionedBlock",
+    "Encoding",
     "FourierBlock",
     "LecunLinear",
     "MLPDenoiser",
+    "PoseEncoder",
     "ResNetEncoder",
     "ScaleBiasBlock",
     "SinusoidalEmbedding",
     "make_activation",
+    "ray_rotation",
+    "rotation_from_6d",
 ]

@@ -12,6 +12,9 @@ from .lie import LIE_GROUP_CHECKS as LIE_GROUP_CHECKS
 from .lie import lie_group_contract as lie_group_contract
 from .lie import oracle_jacobians as oracle_jacobians
 from .lie import tangents_at_angles as tangents_at_angles
+from .models import POSE_MODEL_CHECKS as POSE_MODEL_CHECKS
+from .models import pose_model_contract as pose_model_contract
+from .models import synthetic_batch as synthetic_batch
 
 __all__ = [
     "KERNEL_CHECKS",
@@ -26,4 +29,7 @@ __all__ = [
     "lie_group_contract",
     "oracle_jacobians",
     "tangents_at_angles",
+    "POSE_MODEL_CHECKS",
+    "pose_model_contract",
+    "synthetic_batch",
 ]

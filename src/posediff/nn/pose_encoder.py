@@ -1,0 +1,264 @@
+"""``PoseEncoder``: an image encoder that also estimates one pose — the *anchor* — and, optionally,
+looks at an object-centred crop (locate, then crop).
+
+Beyond the paper (issue "orientation from images in minutes"). The paper's encoder
+(:class:`~posediff.nn.ResNetEncoder`) turns the whole image into a feature; on SYMSOL-T at CPU scale
+that feature is dominated by *where* the object is, and orientation is slow to appear. This encoder
+adds two levers, each one switch away:
+
+* **A pose head.** A linear map of the feature to a rotation (the 6-D representation made a
+  rotation by Gram–Schmidt, :func:`rotation_from_6d`) and a translation. Its output is the anchor
+  ``X̂`` the anchored denoiser works relative to (``Log(X̂⁻¹X̃)``), and the estimate of the regression
+  baselines (paper Table 2, "Regression" / "Iterative regression").
+* **Locate-then-crop** (``crop_size`` set, groups with a translation). A small CNN on the whole image
+  (with pixel-coordinate channels, so position is easy for it) regresses the translation; the crop
+  is the square around that translation's projection whose side covers a sphere of
+  ``object_radius`` scene units at that depth, resampled to ``crop_size`` pixels
+  (``torchvision.ops.roi_align``); the ResNet sees only the crop. In training the crop is placed by
+  the ground-truth translation plus Gaussian jitter (``crop_jitter`` scene units, the locator's
+  expected error), at test by the locator — the RoI idea of the BOP pipeline with a learned locator.
+  The rotation head then predicts the **allocentric** rotation (how the object looks in the crop)
+  and the anchor is ``R̂ = R_ray · R̂_allo``, ``R_ray`` the rotation taking the optical axis to the
+  ray through the crop centre (up to ~10° on SYMSOL-T's frustum). The crop's translation (scene
+  frame) is appended to the feature and is the anchor's translation, refined by the head.
+
+Camera: SYMSOL-T's pinhole (``fov_deg`` horizontal field of view, principal point at the image
+centre, scene centre ``scene_distance`` in front of the camera; translations are relative to it, as
+the data's ``pose``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from .encoder import ResNetEncoder
+
+__all__ = ["Encoding", "PoseEncoder", "ray_rotation", "rotation_from_6d"]
+
+
+def rotation_from_6d(x: Tensor) -> Tensor:
+    """``(…, 6)`` → ``(…, 3, 3)``: the first two columns by Gram–Schmidt, the third their cross
+    product (Zhou et al.'s continuous 6-D representation). Columns ``a₁, a₂`` = ``x[..., :3]``,
+    ``x[..., 3:]``."""
+    a1, a2 = x[..., :3], x[..., 3:]
+    b1 = nn.functional.normalize(a1, dim=-1, eps=1e-8)
+    b2 = nn.functional.normalize(a2 - (b1 * a2).sum(-1, keepdim=True) * b1, dim=-1, eps=1e-8)
+    b3 = torch.linalg.cross(b1, b2, dim=-1)
+    return torch.stack([b1, b2, b3], dim=-1)
+
+
+def ray_rotation(t: Tensor) -> Tensor:
+    """``(…, 3)`` camera-frame points → ``(…, 3, 3)``: the smallest rotation taking the optical axis
+    ``(0, 0, 1)`` to the direction of ``t`` (Rodrigues about ``ẑ × t̂``); ``R_ray = I`` on the axis."""
+    d = nn.functional.normalize(t, dim=-1)
+    x, y, c = d[..., 0], d[..., 1], d[..., 2]
+    # axis k = ẑ × d = (−y, x, 0); R = I + [k]× + [k]×² / (1 + c)  (valid for c > −1)
+    k = 1.0 / (1.0 + c)
+    one = torch.ones_like(c)
+    rows = [
+        one - k * x * x, -k * x * y, x,
+        -k * x * y, one - k * y * y, y,
+        -x, -y, c,
+    ]  # fmt: skip
+    return torch.stack(rows, dim=-1).unflatten(-1, (3, 3))
+
+
+@dataclass
+class Encoding:
+    """What :class:`PoseEncoder` returns: the denoiser's ``feature (B, F)``, the anchor's
+    ``rotation (B, 3, 3)`` and ``translation (B, 3)`` (scene frame; ``None`` for rotation-only), and
+    the locator's own estimate ``located (B, 3)`` (``None`` without a crop), trained by regression."""
+
+    feature: Tensor
+    rotation: Tensor
+    translation: Tensor | None = None
+    located: Tensor | None = None
+
+
+class _Locator(nn.Module):
+    """Where the object is: a small fully convolutional network (RGB + pixel-coordinate channels, two
+    stride-2 convolutions) whose one-channel heat map at 1/4 resolution is read out by a spatial
+    soft-argmax as the projected centre ``(u, v)``, and whose pooled features regress the depth
+    offset from the scene centre; back-projected to the scene-frame translation. The soft-argmax
+    is translation-equivariant, so the position is learned in a few hundred steps."""
+
+    def __init__(self, image_size: int, width: int, focal: float, scene_distance: float) -> None:
+        super().__init__()
+        w = int(width)
+        self.convs = nn.Sequential(
+            nn.Conv2d(5, w // 2, 3, stride=2, padding=1), nn.BatchNorm2d(w // 2), nn.ReLU(inplace=True),
+            nn.Conv2d(w // 2, w, 3, stride=2, padding=1), nn.BatchNorm2d(w), nn.ReLU(inplace=True),
+            nn.Conv2d(w, w, 3, padding=1), nn.BatchNorm2d(w), nn.ReLU(inplace=True),
+        )  # fmt: skip
+        self.heat = nn.Conv2d(w, 1, 1)
+        self.depth = nn.Linear(w, 1)
+        nn.init.zeros_(self.depth.weight)
+        nn.init.zeros_(self.depth.bias)
+        self.image_size, self.focal, self.scene_distance = (
+            int(image_size),
+            float(focal),
+            float(scene_distance),
+        )
+        lin = torch.linspace(-1.0, 1.0, self.image_size)
+        yy, xx = torch.meshgrid(lin, lin, indexing="ij")
+        self.register_buffer("coords", torch.stack([xx, yy])[None], persistent=False)
+
+    def forward(self, image: Tensor) -> Tensor:
+        h = self.convs(torch.cat([image, self.coords.expand(image.shape[0], -1, -1, -1)], dim=1))
+        b, _, hh, ww = h.shape
+        prob = self.heat(h).flatten(1).softmax(-1).view(b, hh, ww)
+        # pixel centres of the heat map, in input pixels
+        xs = (torch.arange(ww, device=h.device, dtype=h.dtype) + 0.5) * (self.image_size / ww)
+        ys = (torch.arange(hh, device=h.device, dtype=h.dtype) + 0.5) * (self.image_size / hh)
+        u = (prob.sum(1) * xs).sum(-1)
+        v = (prob.sum(2) * ys).sum(-1)
+        dz = self.depth(h.mean((-2, -1)))[:, 0]
+        z = self.scene_distance + dz
+        c = self.image_size / 2.0
+        return torch.stack([(u - c) / self.focal * z, (v - c) / self.focal * z, dz], dim=-1)
+
+
+class PoseEncoder(nn.Module):
+    """``(B, 3, H, W)`` images in [0, 1] → :class:`Encoding` (feature + anchor pose).
+
+    Args:
+        arch, out_dim, head_channels, weights: the ResNet trunk and feature head, as
+            :class:`~posediff.nn.ResNetEncoder` (``weights``: a local state dict, never downloaded;
+            a ``posediff pretrain`` file or a torchvision one).
+        image_size: side of the input images.
+        translation: whether poses have a translation (``se3`` / ``r3so3``; ``False`` for ``so3``).
+        crop_size: ``None`` — the trunk sees the whole image (the paper); an int — locate, then crop
+            to ``crop_size`` pixels (needs ``translation``).
+        object_radius: radius (scene units) of the sphere the crop must hold (SYMSOL: 3.03, the
+            cube's half diagonal, the largest shape).
+        crop_margin: the crop side is ``2 · crop_margin · object_radius`` at the object's depth.
+        crop_jitter: std (scene units; one, or x / y / z) of the Gaussian jitter of training crops
+            around the truth — about the locator's error (its depth, from apparent size, is the coarsest).
+        fov_deg, scene_distance: the camera (module docstring).
+        locator_width: channels of the locator's second convolution.
+    """
+
+    def __init__(
+        self,
+        arch: str = "resnet18",
+        out_dim: int = 256,
+        *,
+        image_size: int = 224,
+        head_channels: int = 32,
+        weights: str | os.PathLike[str] | None = None,
+        translation: bool = True,
+        crop_size: int | None = None,
+        object_radius: float = 3.04,
+        crop_margin: float = 1.0,
+        crop_jitter: float | Sequence[float] = (0.1, 0.1, 0.4),
+        fov_deg: float = 60.0,
+        scene_distance: float = 5.25 / math.tan(math.radians(30.0)),
+        locator_width: int = 32,
+    ) -> None:
+        super().__init__()
+        if crop_size is not None and not translation:
+            raise ValueError(
+                "crop_size needs poses with a translation (se3 / r3so3); use crop_size=null for so3"
+            )
+        self.image_size, self.out_dim = int(image_size), int(out_dim)
+        self.translation, self.crop_size = bool(translation), None if crop_size is None else int(crop_size)
+        self.object_radius, self.crop_margin = float(object_radius), float(crop_margin)
+        jitter = (
+            [float(crop_jitter)] * 3
+            if isinstance(crop_jitter, (int, float))
+            else [float(j) for j in crop_jitter]
+        )
+        if len(jitter) != 3 or min(jitter) < 0:
+            raise ValueError(f"crop_jitter must be one std or three (x, y, z) stds >= 0, got {crop_jitter}")
+        self.register_buffer("crop_jitter", torch.tensor(jitter), persistent=False)
+        self.focal = (self.image_size / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
+        self.scene_distance = float(scene_distance)
+        trunk_size = self.crop_size or self.image_size
+        base = ResNetEncoder(
+            arch, out_dim, image_size=trunk_size, head_channels=head_channels, weights=weights
+        )
+        self.arch = arch
+        self.trunk = base.trunk
+        self.register_buffer("mean", base.mean.clone(), persistent=False)
+        self.register_buffer("std", base.std.clone(), persistent=False)
+        channels = base.head[0].in_channels
+        side = -(-trunk_size // 32)
+        geometry = 3 if self.crop_size is not None else 0
+        self.reduce = nn.Sequential(
+            nn.Conv2d(channels, head_channels, 1), nn.ReLU(inplace=True), nn.Flatten()
+        )
+        self.dense = nn.Linear(head_channels * side * side + geometry, self.out_dim)
+        self.pose_head = nn.Linear(self.out_dim, 6 + (3 if self.translation else 0))
+        with torch.no_grad():  # start at the identity rotation and zero translation
+            self.pose_head.weight.mul_(0.1)
+            self.pose_head.bias.zero_()
+            self.pose_head.bias[:6] = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+        self.locator = (
+            _Locator(self.image_size, locator_width, self.focal, self.scene_distance)
+            if self.crop_size is not None
+            else None
+        )
+
+    # ------------------------------------------------------------------ geometry
+    def project(self, t: Tensor) -> tuple[Tensor, Tensor]:
+        """Scene-frame translations ``(B, 3)`` → crop boxes ``(B, 4)`` (x1, y1, x2, y2 in pixels) and
+        the camera-frame centres ``(B, 3)``."""
+        t_cam = t + t.new_tensor([0.0, 0.0, self.scene_distance])
+        z = t_cam[:, 2].clamp_min(1e-3)
+        c = self.image_size / 2.0
+        u, v = self.focal * t_cam[:, 0] / z + c, self.focal * t_cam[:, 1] / z + c
+        half = self.focal * self.crop_margin * self.object_radius / z
+        return torch.stack([u - half, v - half, u + half, v + half], dim=-1), t_cam
+
+    def crop(self, image: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
+        """The object-centred crops ``(B, 3, crop_size, crop_size)`` around scene translations ``t``
+        and the rays' rotations ``R_ray (B, 3, 3)``."""
+        from torchvision.ops import roi_align
+
+        boxes, t_cam = self.project(t)
+        rois = torch.cat([torch.arange(len(t), device=t.device, dtype=t.dtype)[:, None], boxes], dim=1)
+        out = roi_align(image, rois.to(image.dtype), (self.crop_size, self.crop_size), 1.0, 2, True)
+        return out, ray_rotation(t_cam)
+
+    # ------------------------------------------------------------------ forward
+    def forward(self, image: Tensor, pose: Tensor | None = None) -> Encoding:
+        """Encode ``image``; ``pose`` (the training target, ``(B, n, n)``) places training crops."""
+        if image.shape[-2:] != (self.image_size, self.image_size):
+            raise ValueError(
+                f"encoder built for {self.image_size}×{self.image_size} images, got {tuple(image.shape[-2:])}"
+            )
+        located = None
+        ray = None
+        extra: list[Tensor] = []
+        x = image
+        if self.locator is not None:
+            located = self.locator(image)
+            if self.training and pose is not None:
+                t0 = pose[:, :3, 3].to(image.dtype)
+                t_crop = t0 + self.crop_jitter * torch.randn_like(t0)
+            else:
+                t_crop = located.detach()
+            x, ray = self.crop(image, t_crop)
+            extra.append(t_crop)
+        f = self.reduce(self.trunk((x - self.mean) / self.std))
+        feature = self.dense(torch.cat([f, *extra], dim=1) if extra else f)
+        head = self.pose_head(feature)
+        rotation = rotation_from_6d(head[:, :6])
+        if ray is not None:
+            rotation = ray @ rotation
+        translation = None
+        if self.translation:
+            translation = head[:, 6:9] + (extra[0] if extra else 0.0)
+        return Encoding(feature, rotation, translation, located)
+
+    def extra_repr(self) -> str:
+        return (
+            f"arch={self.arch}, image_size={self.image_size}, out_dim={self.out_dim}, crop_size={self.crop_size}, "
+            f"translation={self.translation}"
+        )

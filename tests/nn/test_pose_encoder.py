@@ -1,0 +1,106 @@
+"""PoseEncoder: the 6-D rotation, the ray rotation, the crop geometry, the locator, shapes and gradients."""
+
+import math
+
+import pytest
+import torch
+from torch.testing import assert_close
+
+from posediff.data.symsol.render import SCENE_DISTANCE, intrinsics
+from posediff.nn import Encoding, PoseEncoder, ray_rotation, rotation_from_6d
+
+
+def test_rotation_from_6d_is_a_rotation_and_keeps_rotations() -> None:
+    x = torch.randn(100, 6, dtype=torch.float64)
+    R = rotation_from_6d(x)
+    assert_close(R.mT @ R, torch.eye(3, dtype=torch.float64).expand(100, 3, 3), atol=1e-12, rtol=0)
+    assert_close(torch.linalg.det(R), torch.ones(100, dtype=torch.float64))
+    # a rotation's first two columns give that rotation back
+    Q = rotation_from_6d(torch.randn(10, 6, dtype=torch.float64))
+    assert_close(rotation_from_6d(torch.cat([Q[..., 0], Q[..., 1]], -1)), Q)
+
+
+def test_ray_rotation_turns_the_optical_axis_onto_the_ray() -> None:
+    t = torch.randn(50, 3, dtype=torch.float64)
+    t[:, 2] = t[:, 2].abs() + 1.0
+    R = ray_rotation(t)
+    assert_close(R @ torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), t / t.norm(dim=-1, keepdim=True))
+    assert_close(R.mT @ R, torch.eye(3, dtype=torch.float64).expand(50, 3, 3), atol=1e-12, rtol=0)
+    assert_close(ray_rotation(torch.tensor([[0.0, 0.0, 5.0]])), torch.eye(3)[None])
+
+
+def test_crop_is_centred_on_the_projection_of_the_translation() -> None:
+    """A bright dot drawn where K projects t lands in the middle of the crop, at every place in view."""
+    size, crop = 128, 32
+    enc = PoseEncoder(image_size=size, crop_size=crop, out_dim=8).eval()
+    K = intrinsics(size)
+    t = torch.tensor([[0.0, 0.0, 0.0], [0.9, -0.7, 0.5], [-1.0, 1.0, -1.0]])
+    img = torch.zeros(len(t), 3, size, size)
+    for i, ti in enumerate(t):
+        p = ti.double() + torch.tensor([0.0, 0.0, SCENE_DISTANCE], dtype=torch.float64)
+        u, v = K[0, 0] * p[0] / p[2] + K[0, 2], K[1, 1] * p[1] / p[2] + K[1, 2]
+        img[i, :, int(v) - 1 : int(v) + 2, int(u) - 1 : int(u) + 2] = 1.0  # pixel (u, v) spans [u, u+1)
+    out, ray = enc.crop(img, t)
+    assert out.shape == (3, 3, crop, crop)
+    for i in range(len(t)):
+        m = out[i, 0]
+        ys, xs = torch.meshgrid(torch.arange(crop) + 0.5, torch.arange(crop) + 0.5, indexing="ij")
+        cy, cx = (m * ys).sum() / m.sum(), (m * xs).sum() / m.sum()
+        assert abs(float(cx) - crop / 2) < 1.0 and abs(float(cy) - crop / 2) < 1.0
+    # the crop side covers the object sphere: 2 f r / z pixels
+    boxes, _ = enc.project(t[:1])
+    assert math.isclose(float(boxes[0, 2] - boxes[0, 0]), 2 * K[0, 0] * 3.04 / SCENE_DISTANCE, rel_tol=1e-5)
+
+
+@pytest.mark.parametrize("crop", [None, 32])
+def test_outputs_shapes_and_gradients(crop: int | None) -> None:
+    torch.manual_seed(0)
+    enc = PoseEncoder(image_size=64, crop_size=crop, out_dim=16)
+    x = torch.rand(3, 3, 64, 64, requires_grad=True)
+    pose = torch.eye(4).repeat(3, 1, 1)
+    out = enc(x, pose=pose)
+    assert isinstance(out, Encoding)
+    assert (
+        out.feature.shape == (3, 16) and out.rotation.shape == (3, 3, 3) and out.translation.shape == (3, 3)
+    )
+    assert (out.located is None) == (crop is None)
+    assert_close(torch.linalg.det(out.rotation), torch.ones(3), atol=1e-5, rtol=0)
+    loss = out.feature.square().sum() + out.rotation.sum() + out.translation.sum()
+    if out.located is not None:
+        loss = loss + out.located.sum()
+    loss.backward()
+    assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+    assert all(torch.isfinite(p.grad).all() for p in enc.parameters() if p.grad is not None)
+
+
+def test_untrained_head_starts_at_the_identity_and_rotation_only_has_no_translation() -> None:
+    enc = PoseEncoder(image_size=32, out_dim=8, translation=False).eval()
+    with torch.no_grad():
+        out = enc(torch.rand(2, 3, 32, 32))
+    assert out.translation is None and out.located is None
+    assert float((out.rotation - torch.eye(3)).abs().max()) < 0.5
+
+
+def test_eval_crops_follow_the_locator_and_training_crops_the_truth() -> None:
+    torch.manual_seed(1)
+    enc = PoseEncoder(image_size=64, crop_size=32, out_dim=8, crop_jitter=0.0)
+    img = torch.rand(2, 3, 64, 64)
+    pose = torch.eye(4).repeat(2, 1, 1)
+    pose[:, :3, 3] = torch.tensor([[0.5, -0.5, 0.2], [-0.3, 0.1, -0.4]])
+    enc.train()
+    t_train = enc(img, pose=pose).translation - enc.pose_head(enc(img, pose=pose).feature)[:, 6:9]
+    assert_close(t_train, pose[:, :3, 3], atol=1e-5, rtol=0)
+    enc.eval()
+    with torch.no_grad():
+        out = enc(img, pose=pose)  # at test the truth is not used
+        t_eval = out.translation - enc.pose_head(out.feature)[:, 6:9]
+    assert_close(t_eval, out.located, atol=1e-5, rtol=0)
+
+
+def test_bad_configuration_is_one_line() -> None:
+    with pytest.raises(ValueError, match="crop_size needs poses with a translation"):
+        PoseEncoder(image_size=64, crop_size=32, translation=False)
+    with pytest.raises(ValueError, match="crop_jitter"):
+        PoseEncoder(image_size=64, crop_size=32, crop_jitter=(0.1, 0.1))
+    with pytest.raises(ValueError, match="built for 64"):
+        PoseEncoder(image_size=64, out_dim=8)(torch.rand(1, 3, 32, 32))

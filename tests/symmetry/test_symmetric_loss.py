@@ -1,0 +1,96 @@
+"""The symmetry-aware regression loss: zero on every equivalent pose, the chordal distance to the nearest
+one elsewhere, finite gradients everywhere (including on the equivalents and the closed form's corner)."""
+
+import math
+
+import pytest
+import torch
+from torch.testing import assert_close
+
+from posediff.lie import SO3
+from posediff.symmetry import (
+    SHAPES,
+    is_continuous,
+    min_angle_to_equivalents,
+    set_chordal_sq,
+    symmetric_chordal_sq,
+    symmetry_group,
+    symsol_chordal_sq,
+)
+
+F64 = torch.float64
+
+
+def _rand(n: int, seed: int) -> torch.Tensor:
+    return SO3().sample_uniform((n,), generator=torch.Generator().manual_seed(seed), dtype=F64)
+
+
+def _rz(a: torch.Tensor) -> torch.Tensor:
+    return SO3().exp(torch.stack([torch.zeros_like(a), torch.zeros_like(a), a], dim=-1))
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_zero_on_every_equivalent_pose(shape: str) -> None:
+    R = _rand(8, 0)
+    G = symmetry_group(shape, dtype=F64)
+    if is_continuous(shape):  # off-grid angles too: the closed form is exact, not the 1° grid
+        a = torch.rand(50, generator=torch.Generator().manual_seed(1), dtype=F64) * 2 * math.pi
+        G = torch.cat(
+            [G, _rz(a)]
+            + ([torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=F64)) @ _rz(a)] if shape == "cyl" else [])
+        )
+    eq = R[:, None] @ G[None]
+    loss = symmetric_chordal_sq(shape, eq, R)
+    assert loss.abs().max() < 1e-12
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_chordal_distance_to_the_nearest_equivalent_off_it(shape: str) -> None:
+    R, Q = _rand(64, 2), _rand(64, 3)
+    loss = symmetric_chordal_sq(shape, Q, R)
+    angle = min_angle_to_equivalents(shape, Q, R)
+    assert_close(loss, 8.0 * torch.sin(angle / 2.0) ** 2, atol=1e-12, rtol=0)
+    assert (loss > 1e-6).all()
+    # a small turn off an equivalent pose is penalised
+    small = R @ SO3().exp(torch.tensor([0.0, 0.05, 0.0], dtype=F64))
+    if shape != "cone" and shape != "cyl":
+        assert (symmetric_chordal_sq(shape, small, R) > 1e-3).all()
+    else:  # a turn about a horizontal axis moves the symmetry axis
+        assert (symmetric_chordal_sq(shape, small, R) > 1e-3).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("shape", SHAPES)
+def test_gradients_finite_on_and_off_the_equivalents(shape: str, dtype: torch.dtype) -> None:
+    R = _rand(6, 4).to(dtype)
+    G = symmetry_group(shape, dtype=dtype)
+    cases = [R @ G[1], _rand(6, 5).to(dtype), R]
+    # the closed form's corner: M = Rᵀ R̂ with a vanishing xy block (the axis turned by π/2)
+    cases.append(R @ SO3().exp(torch.tensor([math.pi / 2, 0.0, 0.0], dtype=dtype)))
+    for est in cases:
+        est = est.clone().requires_grad_(True)
+        symmetric_chordal_sq(shape, est, R).sum().backward()
+        assert torch.isfinite(est.grad).all()
+
+
+def test_mixed_batch_and_samples_dimension() -> None:
+    R, Q = _rand(10, 6), _rand(10 * 3, 7).view(10, 3, 3, 3)
+    ids = torch.arange(10) % len(SHAPES)
+    out = symsol_chordal_sq(ids, Q, R)
+    assert out.shape == (10, 3)
+    for i in range(10):
+        assert_close(out[i], symmetric_chordal_sq(SHAPES[int(ids[i])], Q[i], R[i]))
+
+
+def test_set_version_matches_the_finite_groups_with_padding() -> None:
+    R, Q = _rand(4, 8), _rand(4, 9)
+    tet, cube = symmetry_group("tet", dtype=F64), symmetry_group("cube", dtype=F64)
+    sym = torch.zeros(4, 24, 3, 3, dtype=F64)
+    mask = torch.zeros(4, 24, dtype=torch.bool)
+    for i in range(4):
+        g = tet if i % 2 == 0 else cube
+        sym[i, : len(g)], mask[i, : len(g)] = g, True
+    out = set_chordal_sq(Q, R, sym, mask)
+    ref = torch.stack([symmetric_chordal_sq("tet" if i % 2 == 0 else "cube", Q[i], R[i]) for i in range(4)])
+    assert_close(out, ref)
+    assert set_chordal_sq(R[:, None] @ sym[:, :1], R, sym, mask).abs().max() < 1e-12
