@@ -39,52 +39,49 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 POSEDIFF = [sys.executable, "-m", "posediff.cli"]
 
-D64 = ["data.root=data/symsolt_uniform_cpu"]
+D64 = ["data.root=data/symsolt_uniform_cpu", "data.image_size=64"]
 D128 = ["data.root=data/symsolt_uniform_cpu128", "data.image_size=128"]
 POSE = ["encoder=pose"]
 CROP = ["encoder.crop_size=64"]
 
 #: name → (what it tests, overrides of ``+experiment=quickstart``)
+ANCHOR = ["module.anchor=true"]
+AUX = ["module.anchor=true", "module.aux_weight=1.0"]
+REGRESSION = ["module._target_=posediff.regression.PoseRegressionModule", "module.denoiser=null"]
 VARIANTS: dict[str, tuple[str, list[str]]] = {
-    "paper": ("the paper's model as quickstart had it: whole 64 px image, input Log(X̃)", D64),
-    "paper_probe": (
-        "the same with a pose head read out (probe only, no anchor, no auxiliary loss)",
-        D64 + POSE,
-    ),
-    "anchor_aux_64": (
-        "anchored denoiser + auxiliary loss, whole 64 px image",
-        D64 + POSE + ["module.anchor=true", "module.aux_weight=1.0"],
-    ),
+    "paper": ("the paper's model (whole 64 px image, input Log X̃), pose head as a linear probe", D64 + POSE),
+    "anchor_aux_64": ("anchored + auxiliary loss, whole 64 px image (no crop)", D64 + POSE + AUX),
     "crop64_anchor_aux": (
-        "locate-then-crop from 64 px images (64 px crop), anchored + auxiliary loss",
-        D64 + POSE + CROP + ["module.anchor=true", "module.aux_weight=1.0"],
-    ),
-    "crop128_anchor_aux": (
-        "locate-then-crop from 128 px images (64 px crop), anchored + auxiliary loss",
-        D128 + POSE + CROP + ["module.anchor=true", "module.aux_weight=1.0"],
-    ),
-    "crop128_anchor": (
-        "locate-then-crop from 128 px images, anchored, diffusion loss only (no symmetry labels)",
-        D128 + POSE + CROP + ["module.anchor=true"],
+        "locate-then-crop from 64 px images, anchored + auxiliary loss",
+        D64 + POSE + CROP + AUX,
     ),
     "crop128_paper_input": (
-        "locate-then-crop from 128 px images, the paper's input Log(X̃) (probe read out, not used)",
+        "locate-then-crop from 128 px images, the paper's input Log X̃ (linear probe)",
         D128 + POSE + CROP,
     ),
+    "crop128_anchor": (
+        "locate-then-crop from 128 px, anchored, diffusion loss only (no symmetry labels)",
+        D128 + POSE + CROP + ANCHOR,
+    ),
+    "crop128_anchor_aux": (
+        "locate-then-crop from 128 px, anchored + auxiliary loss",
+        D128 + POSE + CROP + AUX,
+    ),
     "crop128_regression": (
-        "locate-then-crop from 128 px images, the regression baseline (symmetry-aware loss only)",
-        D128 + POSE + CROP + ["+experiment=symsolt_regression"],
+        "locate-then-crop from 128 px, regression baseline",
+        D128 + POSE + CROP + REGRESSION,
     ),
     "crop128_anchor_aux_r3so3": (
         "as crop128_anchor_aux on R³×SO(3)",
-        D128 + POSE + CROP + ["module.anchor=true", "module.aux_weight=1.0", "group=r3so3"],
+        D128 + POSE + CROP + AUX + ["group=r3so3"],
     ),
-    "crop128_anchor_aux_lr1e-3": (
-        "as crop128_anchor_aux at Adam 1e-3 → 1e-4",
-        D128
-        + POSE
-        + CROP
-        + ["module.anchor=true", "module.aux_weight=1.0", "module.lr=1e-3", "module.lr_final=1e-4"],
+    "crop128_anchor_aux_lr1e-4": (
+        "as crop128_anchor_aux at Adam 1e-4 → 1e-5",
+        D128 + POSE + CROP + AUX + ["module.lr=1e-4", "module.lr_final=1e-5"],
+    ),
+    "crop128_anchor_aux_pretrained": (
+        "as crop128_anchor_aux, encoder from `posediff pretrain` (data/pretrained/symsolt_resnet18_crop64.pt)",
+        D128 + POSE + CROP + AUX + ["encoder.weights=data/pretrained/symsolt_resnet18_crop64.pt"],
     ),
 }
 

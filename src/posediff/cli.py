@@ -23,6 +23,11 @@ COMMANDS: dict[str, Command] = {
     "groups": Command("list the registered Lie groups and their tensor layouts", None),
     "check": Command("run the Lie group contract on a group from config: posediff check group=so3", "check"),
     "fit": Command("train a score model and evaluate it: posediff fit +experiment=toy_so3", "fit"),
+    "pretrain": Command(
+        "train the image encoder by symmetry-aware regression on posediff's renders, write its weights: "
+        "posediff pretrain [out=FILE]",
+        "pretrain",
+    ),
     "eval": Command(
         "evaluate a checkpoint: posediff eval ckpt_path=CKPT [-m sampler.num_steps=5,10,50,100]", "eval"
     ),
@@ -111,6 +116,7 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
     task: Callable[[DictConfig], int] = {
         "check": tasks.check_group,
         "fit": tasks.fit,
+        "pretrain": tasks.pretrain,
         "eval": tasks.evaluate_checkpoint,
         "predict": tasks.predict,
         "report": tasks.report,

@@ -2,6 +2,7 @@
 
 * ``${posediff.tangent_dim:${group._target_}}`` — the tangent dimension of a group class (3 for
   SO3, 6 for SE3), so the denoiser's input/output sizes follow the chosen group.
+* ``${posediff.not:${trainer.enable_progress_bar}}`` — boolean negation.
 * ``${posediff.has_translation:${group._target_}}`` — whether the group's poses carry a translation.
 * ``${posediff.pose_input_dim:${group._target_},${module.pose_input}}`` — the width of what the
   denoiser sees of a noisy pose (:meth:`posediff.module.PoseDiffusionModule.pose_input_dim`).
@@ -29,6 +30,8 @@ def register_resolvers() -> None:
     """Register posediff's OmegaConf resolvers (idempotent)."""
     if not OmegaConf.has_resolver("posediff.tangent_dim"):
         OmegaConf.register_new_resolver("posediff.tangent_dim", _tangent_dim)
+    if not OmegaConf.has_resolver("posediff.not"):
+        OmegaConf.register_new_resolver("posediff.not", lambda x: not bool(x))
     if not OmegaConf.has_resolver("posediff.has_translation"):
         OmegaConf.register_new_resolver("posediff.has_translation", _has_translation)
     if not OmegaConf.has_resolver("posediff.pose_input_dim"):

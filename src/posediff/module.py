@@ -34,7 +34,7 @@ from torch import Tensor, nn
 
 from .diffusion import Diffusion, Sampler
 from .nn.pose_encoder import Encoding
-from .symmetry import SHAPES, symsol_chordal_sq
+from .symmetry import SHAPES, set_chordal_sq, symsol_chordal_sq
 
 
 class PoseDiffusionModule(L.LightningModule):
@@ -54,7 +54,10 @@ class PoseDiffusionModule(L.LightningModule):
         anchor: the anchored denoiser (module docstring); needs an encoder that returns an
             :class:`~posediff.nn.Encoding` (``posediff.nn.PoseEncoder``).
         aux_weight: weight of the symmetry-aware regression loss on the anchor (rotation:
-            ``min_S ‖R̂ − R·S‖²_F``; translation: squared error); 0 = diffusion loss only.
+            ``min_S ‖R̂ − R·S‖²_F``; translation: squared error); 0 = diffusion loss only. Without
+            an anchor and with ``aux_weight=0``, a pose-estimating encoder's head is trained as a
+            *linear probe* on the detached feature (it never changes the encoder): ``anchor_deg``
+            then tells whether the paper's encoder sees orientation.
         locate_weight: weight of the locator's translation regression (locate-then-crop encoders).
         grad_probe_every: every N training steps, log the encoder's gradient norm from the rotation
             and the translation parts of the diffusion loss separately (two extra backward passes;
@@ -219,21 +222,25 @@ class PoseDiffusionModule(L.LightningModule):
             locate = (enc.located - pose[:, :3, 3]).square().sum(-1).mean()
             self.log(f"{stage}/locate_loss", locate, batch_size=bs)
             total = total + self.locate_weight * locate
-        if enc.rotation is None or "shape" not in batch:
+        if enc.rotation is None or ("shape" not in batch and "symmetries" not in batch):
             return total
-        rot = symsol_chordal_sq(batch["shape"], enc.rotation, batch["rotation"].to(enc.rotation.dtype))
+        probe = not self.anchor and self.aux_weight == 0 and hasattr(self.encoder, "head_pose")
+        if probe:  # the pose head as a linear probe: trained on the detached feature, never the encoder
+            R_probe, t_probe = self.encoder.head_pose(enc.feature.detach(), enc.ray, enc.crop_translation)
+            enc = Encoding(enc.feature, R_probe, t_probe, enc.located, enc.crop_translation, enc.ray)
+        rot = symmetric_rotation_loss(batch, enc.rotation)
         deg = torch.rad2deg(2.0 * torch.asin((rot.clamp_min(0.0) / 8.0).sqrt().clamp(max=1.0)))
         self.log(f"{stage}/anchor_deg", deg.mean(), prog_bar=stage == "val", batch_size=bs)
         if stage == "val":
-            for k in batch["shape"].unique().tolist():
+            for k in batch["shape"].unique().tolist() if "shape" in batch else []:
                 sel = batch["shape"] == k
                 self.log(f"val/anchor_deg_{SHAPES[int(k)]}", deg[sel].mean(), batch_size=int(sel.sum()))
-        if self.aux_weight > 0:
+        if self.aux_weight > 0 or probe:
             aux = rot.mean()
             if enc.translation is not None and pose.shape[-1] == 4:
                 aux = aux + (enc.translation - pose[:, :3, 3]).square().sum(-1).mean()
-            self.log(f"{stage}/aux_loss", aux, batch_size=bs)
-            total = total + self.aux_weight * aux
+            self.log(f"{stage}/{'probe' if probe else 'aux'}_loss", aux, batch_size=bs)
+            total = total + (1.0 if probe else self.aux_weight) * aux
         return total
 
     def _probe_gradients(self, out: Tensor, noisy: Any) -> None:
@@ -315,6 +322,22 @@ class PoseDiffusionModule(L.LightningModule):
             dtype=feature.dtype,
             device=feature.device,
         )
+
+
+def symmetric_rotation_loss(batch: dict[str, Tensor], R: Tensor) -> Tensor:
+    """``min_S ‖R − R_gt·S‖²_F`` per input (``(B,)``, or ``(B, N)`` for ``R (B, N, 3, 3)``) against the
+    rotation of the batch's ``pose`` (the network's frame: allocentric for BOP crops) over the input's
+    symmetries: the batch's padded ``symmetries`` / ``symmetries_mask`` (BOP ``models_info``) or its
+    SYMSOL ``shape`` ids (exact groups, cone / cylinder in closed form)."""
+    R_gt = batch["pose"][..., :3, :3].to(R.dtype)
+    if "symmetries" in batch:
+        return set_chordal_sq(R, R_gt, batch["symmetries"].to(R.dtype), batch["symmetries_mask"])
+    if "shape" in batch:
+        return symsol_chordal_sq(batch["shape"], R, R_gt)
+    raise ValueError(
+        "the symmetry-aware loss needs the batch's symmetries: SYMSOL shape ids ('shape') or BOP "
+        "'symmetries'; this data has neither"
+    )
 
 
 def _takes_pose(encoder: nn.Module) -> bool:

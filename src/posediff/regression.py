@@ -9,8 +9,9 @@
   in place of the noise level. Every iterate is supervised (the mean of the K + 1 losses); the
   estimate entering a step is detached, as in iterative error feedback.
 
-The loss is the minimum over the object's equivalent poses (SYMSOL's exact groups; cone and cylinder
-in closed form, :func:`~posediff.symmetry.symmetric_chordal_sq`): ``min_S ‖R̂ − R·S‖²_F`` plus
+The loss is the minimum over the object's equivalent poses (SYMSOL's exact groups, cone and cylinder
+in closed form, :func:`~posediff.symmetry.symmetric_chordal_sq`; BOP objects by their ``models_info``
+symmetries, which the BOP data module puts in every sample): ``min_S ‖R̂ − R·S‖²_F`` plus
 ``translation_weight · ‖t̂ − t‖²``. The paper's regression baselines use symmetry labels; the
 diffusion models do not.
 
@@ -26,9 +27,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from .module import PoseDiffusionModule
+from .module import PoseDiffusionModule, symmetric_rotation_loss
 from .nn.pose_encoder import Encoding
-from .symmetry import symsol_chordal_sq
 
 __all__ = ["PoseRegressionModule"]
 
@@ -90,12 +90,7 @@ class PoseRegressionModule(PoseDiffusionModule):
 
     def pose_loss(self, batch: dict[str, Tensor], x: Tensor) -> Tensor:
         """Symmetry-aware loss of estimates ``x (B, n, n)`` (module docstring), batch mean."""
-        if "shape" not in batch:
-            raise ValueError(
-                "the symmetry-aware loss needs the batch's SYMSOL shape ids ('shape'); this data has none"
-            )
-        R = x[..., :3, :3]
-        loss = symsol_chordal_sq(batch["shape"], R, batch["rotation"].to(R.dtype)).mean()
+        loss = symmetric_rotation_loss(batch, x[..., :3, :3]).mean()
         if x.shape[-1] == 4:
             loss = (
                 loss

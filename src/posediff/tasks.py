@@ -82,7 +82,41 @@ def check_group(cfg: DictConfig) -> int:
     return 1 if failed else 0
 
 
-def fit(cfg: DictConfig) -> int:
+def pretrain(cfg: DictConfig) -> int:
+    """``posediff pretrain``: ``fit`` with the ``pretrain`` experiment (symmetry-aware regression of the
+    :class:`~posediff.nn.PoseEncoder` on posediff's renders), then the encoder's weights to ``cfg.out``
+    (atomically) for ``encoder.weights=...``."""
+    if not cfg.get("out"):
+        print(
+            "posediff pretrain: out= is empty; give the file to write the encoder's weights to",
+            file=sys.stderr,
+        )
+        return 2
+    return fit(cfg, encoder_out=Path(str(cfg.out)))
+
+
+def _save_encoder(module: Any, path: Path, cfg: DictConfig, results: dict[str, Any]) -> Path:
+    """The encoder's state dict and what made it, as a ``weights_only``-loadable file (temp name, rename)."""
+    import io
+
+    from ._io import atomic_write_bytes
+
+    after = next(iter(results.get("after", {}).values()), {})
+    res = next(iter(after.values()), {})
+    info = {
+        "experiment": _experiment_name(),
+        "encoder": OmegaConf.to_container(cfg.encoder, resolve=True),
+        "data": {"root": str(cfg.data.get("root")), "image_size": int(cfg.data.image_size)},
+        "train": results.get("train", {}),
+        "spread_deg": {k: float(v.get("spread_deg", float("nan"))) for k, v in res.get("shapes", {}).items()},
+    }
+    buf = io.BytesIO()
+    state = {k: v.detach().cpu().clone() for k, v in module.encoder.state_dict().items()}
+    torch.save({"encoder_state_dict": state, "posediff_pretrain": info}, buf)
+    return atomic_write_bytes(path, buf.getvalue())
+
+
+def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
     """``posediff fit``: train ``cfg.module`` on ``cfg.data`` with ``cfg.trainer``, then evaluate it.
 
     Writes ``metrics.json`` and ``metrics.md`` (atomically) in the Hydra run folder: the untrained model's metrics
@@ -185,6 +219,10 @@ def fit(cfg: DictConfig) -> int:
     path = atomic_write_json(out_dir / "metrics.json", results)
     print(text)
     print(f"metrics: {path} (and metrics.md)")
+    if encoder_out is not None:
+        print(
+            f"encoder weights: {_save_encoder(module, encoder_out, cfg, results)} (use: encoder.weights=<that file>)"
+        )
     return 0
 
 

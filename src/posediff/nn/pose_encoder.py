@@ -73,12 +73,15 @@ def ray_rotation(t: Tensor) -> Tensor:
 class Encoding:
     """What :class:`PoseEncoder` returns: the denoiser's ``feature (B, F)``, the anchor's
     ``rotation (B, 3, 3)`` and ``translation (B, 3)`` (scene frame; ``None`` for rotation-only), and
-    the locator's own estimate ``located (B, 3)`` (``None`` without a crop), trained by regression."""
+    the locator's own estimate ``located (B, 3)`` (``None`` without a crop), trained by regression;
+    ``crop_translation`` / ``ray`` the crop's translation and ray rotation (``None`` without a crop)."""
 
     feature: Tensor
     rotation: Tensor
     translation: Tensor | None = None
     located: Tensor | None = None
+    crop_translation: Tensor | None = None
+    ray: Tensor | None = None
 
 
 class _Locator(nn.Module):
@@ -180,9 +183,7 @@ class PoseEncoder(nn.Module):
         self.focal = (self.image_size / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
         self.scene_distance = float(scene_distance)
         trunk_size = self.crop_size or self.image_size
-        base = ResNetEncoder(
-            arch, out_dim, image_size=trunk_size, head_channels=head_channels, weights=weights
-        )
+        base = ResNetEncoder(arch, out_dim, image_size=trunk_size, head_channels=head_channels)
         self.arch = arch
         self.trunk = base.trunk
         self.register_buffer("mean", base.mean.clone(), persistent=False)
@@ -204,6 +205,43 @@ class PoseEncoder(nn.Module):
             if self.crop_size is not None
             else None
         )
+        if weights is not None:
+            self.load_weights(weights)
+
+    def load_weights(self, path: str | os.PathLike[str]) -> None:
+        """Start from a local file (never a download): a ``posediff pretrain`` file or any posediff
+        checkpoint (its encoder's weights — trunk, head, pose head, locator, whatever matches), or a
+        torchvision ResNet state dict (the trunk only). Read with ``weights_only=True``; a missing
+        file or one that fits nothing is a one-line error."""
+        from pathlib import Path
+
+        p = Path(path)
+        if not p.is_file():
+            raise FileNotFoundError(
+                f"encoder weights file {p} not found (posediff never downloads; make one with "
+                f"`posediff pretrain`, or give a local torchvision {self.arch} state dict, or weights=null)"
+            )
+        state = torch.load(p, map_location="cpu", weights_only=True)
+        if isinstance(state, dict) and "state_dict" in state:  # a Lightning checkpoint
+            state = state["state_dict"]
+        if isinstance(state, dict) and "encoder_state_dict" in state:  # a posediff pretrain file
+            state = state["encoder_state_dict"]
+        if not isinstance(state, dict):
+            raise ValueError(f"{p} holds no state dict")
+        if any(k.startswith("encoder.") for k in state):
+            state = {k[len("encoder.") :]: v for k, v in state.items() if k.startswith("encoder.")}
+        if not any(k.startswith("trunk.") for k in state):  # torchvision: conv1, bn1, layer1, ... (no fc)
+            names = [n for n, _ in __import__("torchvision").models.resnet18().named_children()][:-2]
+            state = {
+                f"trunk.{names.index(k.split('.')[0])}.{k.split('.', 1)[1]}": v
+                for k, v in state.items()
+                if k.split(".")[0] in names
+            }
+        own = self.state_dict()
+        fits = {k: v for k, v in state.items() if k in own and own[k].shape == v.shape}
+        if not any(k.startswith("trunk.") for k in fits):
+            raise ValueError(f"{p}: no trunk weights fit this {self.arch} encoder")
+        self.load_state_dict(fits, strict=False)
 
     # ------------------------------------------------------------------ geometry
     def project(self, t: Tensor) -> tuple[Tensor, Tensor]:
@@ -247,15 +285,25 @@ class PoseEncoder(nn.Module):
             x, ray = self.crop(image, t_crop)
             extra.append(t_crop)
         f = self.reduce(self.trunk((x - self.mean) / self.std))
-        feature = self.dense(torch.cat([f, *extra], dim=1) if extra else f)
+        t_crop = extra[0] if extra else None
+        feature = self.dense(torch.cat([f, t_crop], dim=1) if t_crop is not None else f)
+        rotation, translation = self.head_pose(feature, ray, t_crop)
+        return Encoding(feature, rotation, translation, located, t_crop, ray)
+
+    def head_pose(
+        self, feature: Tensor, ray: Tensor | None = None, crop_translation: Tensor | None = None
+    ) -> tuple[Tensor, Tensor | None]:
+        """The pose head on a feature: rotation ``(B, 3, 3)`` (egocentric: ``R_ray · R_allo`` with a
+        crop) and translation ``(B, 3)`` (the crop's plus the head's offset; ``None`` for rotation-only).
+        Called on a detached feature it is a linear probe of what the encoder sees."""
         head = self.pose_head(feature)
         rotation = rotation_from_6d(head[:, :6])
         if ray is not None:
             rotation = ray @ rotation
         translation = None
         if self.translation:
-            translation = head[:, 6:9] + (extra[0] if extra else 0.0)
-        return Encoding(feature, rotation, translation, located)
+            translation = head[:, 6:9] + (crop_translation if crop_translation is not None else 0.0)
+        return rotation, translation
 
     def extra_repr(self) -> str:
         return (

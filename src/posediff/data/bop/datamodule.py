@@ -85,8 +85,12 @@ class BopInstanceDataset(Dataset):
         dzi_scale: float = 0.25,
         dzi_pad: float = 1.5,
         rotation_only: bool = False,
+        symmetries: dict[int, torch.Tensor] | None = None,
     ) -> None:
         self.instances = instances if isinstance(instances, InstanceTable) else list(instances)
+        #: obj_id → its ``models_info`` symmetry rotations, padded to one size ``(S, 3, 3)`` with a mask
+        #: (for the symmetry-aware regression losses; samples then carry ``symmetries`` / ``symmetries_mask``)
+        self.symmetries = _pad_symmetries(symmetries) if symmetries else None
         self.encoding = encoding
         self.image_size = int(image_size)
         self.train = train
@@ -136,7 +140,30 @@ class BopInstanceDataset(Dataset):
             "im_id": torch.tensor(inst.im_id),
             "gt_idx": torch.tensor(inst.gt_idx),
             "index": torch.tensor(i),
+            **(
+                {
+                    "symmetries": self.symmetries[0][inst.obj_id],
+                    "symmetries_mask": self.symmetries[1][inst.obj_id],
+                }
+                if self.symmetries is not None
+                else {}
+            ),
         }
+
+
+def _pad_symmetries(
+    sets: dict[int, torch.Tensor],
+) -> tuple[dict[int, torch.Tensor], dict[int, torch.Tensor]]:
+    """Pad every object's symmetry rotations to the largest set (identity rows, masked out)."""
+    size = max(len(v) for v in sets.values())
+    rots, masks = {}, {}
+    for k, v in sets.items():
+        r = torch.eye(3).repeat(size, 1, 1)
+        r[: len(v)] = v.float()
+        m = torch.zeros(size, dtype=torch.bool)
+        m[: len(v)] = True
+        rots[int(k)], masks[int(k)] = r, m
+    return rots, masks
 
 
 class BopDataModule(L.LightningDataModule):
@@ -232,8 +259,19 @@ class BopDataModule(L.LightningDataModule):
             image_size=self.image_size,
             train=train,
             rotation_only=self.rotation_only,
+            symmetries=self.symmetry_rotations(),
             **self.dzi,
         )
+
+    def symmetry_rotations(self) -> dict[int, torch.Tensor]:
+        """obj_id → the rotations of its ``models_info`` symmetries (discretised every 0.01 rad, as the
+        BOP toolkit), for the symmetry-aware losses of the regression baselines and the anchor."""
+        if getattr(self, "_symmetry_rotations", None) is None:
+            ids = self.obj_ids or self.models.obj_ids
+            self._symmetry_rotations = {
+                int(o): torch.from_numpy(np.asarray(self.models.symmetries(int(o))[0])) for o in ids
+            }
+        return self._symmetry_rotations
 
     def _train_instances(self) -> InstanceTable:
         table = InstanceTable.concat(
