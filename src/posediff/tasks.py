@@ -141,7 +141,14 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
         return 2
     if hasattr(datamodule, "summary_line"):
         print(datamodule.summary_line())
-    module = instantiate(cfg.module)
+    try:
+        module = instantiate(cfg.module)
+    except Exception as e:  # noqa: BLE001 - a missing weights file or a bad option: one line
+        message = _data_error(e)
+        if message is None:
+            raise
+        print(f"posediff fit: {message}", file=sys.stderr)
+        return 2
     if not isinstance(module, PoseDiffusionModule):
         raise TypeError(f"module config builds {type(module).__name__}, not a PoseDiffusionModule")
     module.config = OmegaConf.to_container(cfg, resolve=True)

@@ -1,0 +1,141 @@
+"""The regression baselines, the anchored denoiser and `posediff pretrain` through the real CLI at toy
+size: each trains, `posediff eval` scores its checkpoint with the same report layout as the paper's model,
+and a pretrained encoder file starts a new run. Plumbing only (learning is benchmarks/learning_speed.py)."""
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from posediff.checkpoint import load_checkpoint
+from posediff.cli import main
+from posediff.regression import PoseRegressionModule
+
+SMALL = [
+    "+experiment=quickstart",
+    "data.mode=render",
+    "data.image_size=32",
+    "data.n_per_shape_train=4",
+    "data.n_per_shape_test=2",
+    "data.batch_size=4",
+    "data.shapes=[tet,cyl]",
+    "module.num_noisy=8",
+    "denoiser.hidden_dim=32",
+    "encoder.out_dim=32",
+    "eval.num_samples=4",
+    "eval.num_steps=[2]",
+    "eval.before=false",
+    "trainer.enable_progress_bar=false",
+    "trainer.max_steps=2",
+    "trainer.val_check_interval=2",
+    "trainer.log_every_n_steps=1",
+]
+REGRESSION = ["encoder=pose", "module._target_=posediff.regression.PoseRegressionModule"]
+MODELS = {
+    "paper": [],
+    "anchored_aux_crop": [
+        "encoder=pose",
+        "encoder.crop_size=32",
+        "module.anchor=true",
+        "module.aux_weight=1.0",
+    ],
+    "regression": [*REGRESSION, "module.denoiser=null", "encoder.crop_size=32"],
+    "iterative_regression": [*REGRESSION, "+module.iterations=2"],
+}
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("baselines")
+    out = {}
+    for name, extra in MODELS.items():
+        out[name] = root / name
+        assert main(["fit", *SMALL, *extra, f"hydra.run.dir={out[name]}"]) == 0, name
+    return out
+
+
+def _header(md: str) -> list[str]:
+    return [line for line in md.splitlines() if line.startswith("| shape")]
+
+
+def test_every_model_trains_and_eval_reports_the_same_layout(runs: dict[str, Path], tmp_path: Path) -> None:
+    headers = {}
+    for name, run in runs.items():
+        assert (run / "progress.log").read_text().count("step ") >= 1
+        ev = tmp_path / name
+        assert (
+            main(
+                [
+                    "eval",
+                    f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}",
+                    "num_samples=3",
+                    f"hydra.run.dir={ev}",
+                ]
+            )
+            == 0
+        )
+        m = json.loads((ev / "metrics.json").read_text())
+        assert set(m["shapes"]) == {"tet", "cyl"} and m["num_samples"] == 3
+        assert all(
+            k in m["overall"] for k in ("spread_deg", "translation_error", "recall_rot@10", "coverage")
+        )
+        headers[name] = _header((ev / "metrics.md").read_text())
+    assert (
+        headers["regression"]
+        == headers["paper"]
+        == headers["anchored_aux_crop"]
+        == headers["iterative_regression"]
+    )
+
+
+def test_regression_checkpoints_load_and_estimate_once(runs: dict[str, Path]) -> None:
+    for name, iterations in (("regression", 0), ("iterative_regression", 2)):
+        module = load_checkpoint(runs[name] / "checkpoints" / "last.ckpt")
+        assert isinstance(module, PoseRegressionModule) and module.iterations == iterations
+        m = json.loads((runs[name] / "metrics.json").read_text())
+        res = m["after"]["default"]["2"]
+        assert res["sampler"] == "regression" and res["num_steps"] == iterations
+        x, path = module.sample(torch.rand(2, 3, 32, 32), 4, trajectory=True)
+        assert x.shape == (2, 4, 4, 4) and path.shape == (iterations + 1, 2, 4, 4, 4)
+        assert torch.equal(x[:, 0], x[:, 3]), "one estimate, repeated"
+
+
+def test_anchored_checkpoint_keeps_its_anchor(runs: dict[str, Path]) -> None:
+    module = load_checkpoint(runs["anchored_aux_crop"] / "checkpoints" / "last.ckpt")
+    assert module.anchor and module.aux_weight == 1.0 and module.encoder.crop_size == 32
+    x = module.sample(torch.rand(2, 3, 32, 32), 3, 2, generator=torch.Generator().manual_seed(0))
+    assert x.shape == (2, 3, 4, 4) and torch.isfinite(x).all()
+
+
+def test_pretrain_writes_weights_that_a_new_run_starts_from(tmp_path: Path) -> None:
+    out = tmp_path / "enc.pt"
+    args = [a for a in SMALL if not a.startswith("+experiment")]
+    code = main(
+        ["pretrain", *args, "encoder.crop_size=32", f"out={out}", f"hydra.run.dir={tmp_path / 'pre'}"]
+    )
+    assert code == 0 and out.is_file()
+    saved = torch.load(out, weights_only=True)
+    assert "encoder_state_dict" in saved and saved["posediff_pretrain"]["train"]["steps"] == 2
+    run = tmp_path / "fit"
+    extra = [
+        "encoder=pose",
+        "encoder.crop_size=32",
+        "module.anchor=true",
+        f"encoder.weights={out}",
+        "trainer.max_steps=1",
+    ]
+    assert main(["fit", *SMALL, *extra, f"hydra.run.dir={run}"]) == 0
+    # a missing weights file is one line
+    assert (
+        main(
+            [
+                "fit",
+                *SMALL,
+                "encoder=pose",
+                f"encoder.weights={tmp_path / 'nope.pt'}",
+                f"hydra.run.dir={run}2",
+            ]
+        )
+        != 0
+    )
