@@ -115,3 +115,18 @@ def test_auxiliary_loss_is_added_and_trains_the_anchor() -> None:
             aux.backward()
             assert enc.pose_head.weight.grad.abs().sum() > 0
     assert losses[1.0] > losses[0.0]
+
+
+def test_invariant_head_anchor_needs_the_auxiliary_loss() -> None:
+    from posediff.nn import PoseEncoder
+
+    g = get_group("se3")
+    diffusion = Diffusion(ConcentratedGaussian(g), PowerSchedule())
+    enc = PoseEncoder(image_size=32, out_dim=8, rotation_head="invariant")
+    den = MLPDenoiser(8, 6, 6, hidden_dim=8, num_frequencies=4, time_dim=8)
+    with pytest.raises(ValueError, match="aux_weight > 0"):
+        PoseDiffusionModule(diffusion, den, FewStepSampler, encoder=enc, anchor=True)
+    m = PoseDiffusionModule(diffusion, den, FewStepSampler, encoder=enc, anchor=True, aux_weight=1.0)
+    assert enc.decode_in_training
+    PoseDiffusionModule(diffusion, den, FewStepSampler, encoder=enc)  # the paper's input: a linear probe
+    assert not enc.decode_in_training and m.anchor

@@ -105,6 +105,17 @@ class PoseDiffusionModule(L.LightningModule):
         self.aux_weight = float(aux_weight)
         self.locate_weight = float(locate_weight)
         self.grad_probe_every = int(grad_probe_every)
+        if (
+            self.anchor
+            and self.aux_weight == 0
+            and getattr(self.encoder, "rotation_head", "6d") == "invariant"
+        ):
+            raise ValueError(
+                "the invariant rotation head is trained only by the symmetry-aware loss: with module.anchor=true "
+                "set module.aux_weight > 0, or use encoder.rotation_head=6d for an anchor trained by diffusion alone"
+            )
+        if hasattr(self.encoder, "decode_in_training"):  # decode the invariant head in training only if used
+            self.encoder.decode_in_training = self.anchor
         n = int(self.group.matrix_dim)
         #: width of the anchor packed behind the feature in the condition (0 without an anchor)
         self.anchor_width = n * n if self.anchor else 0
@@ -222,26 +233,38 @@ class PoseDiffusionModule(L.LightningModule):
             locate = (enc.located - pose[:, :3, 3]).square().sum(-1).mean()
             self.log(f"{stage}/locate_loss", locate, batch_size=bs)
             total = total + self.locate_weight * locate
-        if enc.rotation is None or ("shape" not in batch and "symmetries" not in batch):
+        has_head = enc.rotation is not None or enc.embedding is not None
+        if not has_head or ("shape" not in batch and "symmetries" not in batch):
             return total
         probe = not self.anchor and self.aux_weight == 0 and hasattr(self.encoder, "head_pose")
         if probe:  # the pose head as a linear probe: trained on the detached feature, never the encoder
-            R_probe, t_probe = self.encoder.head_pose(enc.feature.detach(), enc.ray, enc.crop_translation)
-            enc = Encoding(enc.feature, R_probe, t_probe, enc.located, enc.crop_translation, enc.ray)
-        rot = symmetric_rotation_loss(batch, enc.rotation)
-        deg = torch.rad2deg(2.0 * torch.asin((rot.clamp_min(0.0) / 8.0).sqrt().clamp(max=1.0)))
-        self.log(f"{stage}/anchor_deg", deg.mean(), prog_bar=stage == "val", batch_size=bs)
-        if stage == "val":
-            for k in batch["shape"].unique().tolist() if "shape" in batch else []:
-                sel = batch["shape"] == k
-                self.log(f"val/anchor_deg_{SHAPES[int(k)]}", deg[sel].mean(), batch_size=int(sel.sum()))
+            R, t, emb, logits = self.encoder.head_pose(enc.feature.detach(), enc.ray, enc.crop_translation)
+            enc = Encoding(enc.feature, R, t, enc.located, enc.crop_translation, enc.ray, emb, logits)
+        if enc.rotation is not None:
+            deg = torch.rad2deg(_chordal_to_angle(symmetric_rotation_loss(batch, enc.rotation.detach())))
+            self.log(f"{stage}/anchor_deg", deg.mean(), prog_bar=stage == "val", batch_size=bs)
+            if stage == "val":
+                for k in batch["shape"].unique().tolist() if "shape" in batch else []:
+                    sel = batch["shape"] == k
+                    self.log(f"val/anchor_deg_{SHAPES[int(k)]}", deg[sel].mean(), batch_size=int(sel.sum()))
         if self.aux_weight > 0 or probe:
-            aux = rot.mean()
-            if enc.translation is not None and pose.shape[-1] == 4:
-                aux = aux + (enc.translation - pose[:, :3, 3]).square().sum(-1).mean()
+            aux = self.anchor_loss(batch, enc).mean()
             self.log(f"{stage}/{'probe' if probe else 'aux'}_loss", aux, batch_size=bs)
             total = total + (1.0 if probe else self.aux_weight) * aux
         return total
+
+    def anchor_loss(self, batch: dict[str, Tensor], enc: Encoding) -> Tensor:
+        """The symmetry-aware loss of the encoder's pose per input ``(B,)``: the invariant head's
+        embedding loss, or ``min_S ‖R̂ − R·S‖²_F``; plus the translation's squared error."""
+        pose = batch["pose"]
+        if enc.embedding is not None:
+            loss = self.encoder.embedding_loss(enc, batch["shape"], pose[..., :3, :3])
+        else:
+            loss = symmetric_rotation_loss(batch, enc.rotation)
+        if enc.translation is not None and pose.shape[-1] == 4:
+            w = float(getattr(self, "translation_weight", 1.0))
+            loss = loss + w * (enc.translation - pose[:, :3, 3]).square().sum(-1)
+        return loss
 
     def _probe_gradients(self, out: Tensor, noisy: Any) -> None:
         """Log ``grad/encoder_rotation`` and ``grad/encoder_translation``: the encoder's gradient norm
@@ -322,6 +345,11 @@ class PoseDiffusionModule(L.LightningModule):
             dtype=feature.dtype,
             device=feature.device,
         )
+
+
+def _chordal_to_angle(chordal_sq: Tensor) -> Tensor:
+    """Geodesic angle (radians) of a squared chordal distance ``8 sin²(θ/2)``."""
+    return 2.0 * torch.asin((chordal_sq.clamp_min(0.0) / 8.0).sqrt().clamp(max=1.0))
 
 
 def symmetric_rotation_loss(batch: dict[str, Tensor], R: Tensor) -> Tensor:

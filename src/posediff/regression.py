@@ -71,6 +71,8 @@ class PoseRegressionModule(PoseDiffusionModule):
         super().__init__(diffusion, denoiser if int(iterations) > 0 else nn.Identity(), sampler, **kwargs)
         self.iterations = int(iterations)
         self.translation_weight = float(translation_weight)
+        if self.iterations > 0 and hasattr(self.encoder, "decode_in_training"):
+            self.encoder.decode_in_training = True  # the refinement starts from the decoded rotation
 
     # ------------------------------------------------------------------ the estimate
     def refine(self, x: Tensor, k: int, feature: Tensor) -> Tensor:
@@ -101,9 +103,11 @@ class PoseRegressionModule(PoseDiffusionModule):
     # ------------------------------------------------------------------ training
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         enc = self.encode_full(batch[self.cond_key], pose=batch["pose"])
-        xs = self.estimates(enc, detach=True)
-        loss = torch.stack([self.pose_loss(batch, x) for x in xs]).mean()
-        loss = loss + self.side_losses(batch, enc, "train")
+        losses = [self.anchor_loss(batch, enc).mean()]
+        if self.iterations:
+            xs = self.estimates(enc, detach=True)
+            losses += [self.pose_loss(batch, x) for x in xs[1:]]
+        loss = torch.stack(losses).mean() + self.side_losses(batch, enc, "train")
         if not torch.isfinite(loss):
             raise FloatingPointError(f"non-finite training loss {loss.item()} at step {self.global_step}")
         self.log("train/loss", loss, prog_bar=True, batch_size=batch["pose"].shape[0])

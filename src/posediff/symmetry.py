@@ -303,6 +303,83 @@ def set_chordal_sq(R_est: Tensor, R_gt: Tensor, sym: Tensor, mask: Tensor | None
     return 6.0 - 2.0 * traces.amax(-1)
 
 
+# ----------------------------------------------------------------------------- invariant embeddings
+def _embedding_directions(shape: str) -> tuple[Tensor, int]:
+    """The object-frame directions and the tensor order of :func:`invariant_embedding` (float64)."""
+    if shape == "tet":  # the 4 vertices, order 3 (odd: tells the tetrahedron from its dual)
+        v = torch.tensor([(1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)], dtype=torch.float64)
+        return v / math.sqrt(3.0), 3
+    if shape == "cube":  # the 3 face axes, order 4 (x⁴ + y⁴ + z⁴: stabiliser O)
+        return torch.eye(3, dtype=torch.float64), 4
+    if shape == "icosa":  # the 6 vertex axes, order 6 (stabiliser I)
+        p = GOLDEN_RATIO
+        v = torch.tensor(
+            [c[k:] + c[:k] for c in ((0.0, 1.0, p), (0.0, -1.0, p)) for k in range(3)], dtype=torch.float64
+        )
+        return v / v.norm(dim=-1, keepdim=True), 6
+    if shape == "cone":  # the axis itself (no flip symmetry)
+        return torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64), 1
+    return torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64), 2  # cyl: the axis up to sign, a ⊗ a
+
+
+def embedding_dim(shape: str) -> int:
+    """Width of :func:`invariant_embedding`: 27 / 81 / 729 / 3 / 9 for tet / cube / icosa / cone / cyl."""
+    return 3 ** _embedding_directions(_check_shape(shape))[1]
+
+
+def invariant_embedding(shape: str, R: Tensor) -> Tensor:
+    """A continuous, symmetry-invariant and (modulo the group) injective embedding of rotations
+    ``(…, 3, 3)`` → ``(…, embedding_dim(shape))``: ``φ(R) = Σᵢ (R vᵢ)^{⊗p} / √m`` over the shape's
+    symmetric directions ``vᵢ`` (tet: its 4 vertices, p = 3; cube: the 3 face axes, p = 4; icosahedron:
+    the 6 vertex axes, p = 6; cone: the axis, p = 1; cylinder: the axis, p = 2), flattened.
+
+    ``φ(R·S) = φ(R)`` for every symmetry S (the group permutes the directions, and for even p flips
+    signs harmlessly), and the stabiliser of φ is exactly the group, so a rotation is recovered from φ
+    up to its symmetries (:func:`decode_embedding`). Unlike a rotation picked out of the equivalence
+    class, φ is a *continuous* function of what the image shows, which is what a network regresses
+    easily (beyond the paper; used by ``PoseEncoder(rotation_head="invariant")``).
+    """
+    v, p = _embedding_directions(_check_shape(shape))
+    u = torch.einsum("...ij,mj->...mi", R, v.to(dtype=R.dtype, device=R.device))  # (…, m, 3)
+    t = u
+    for _ in range(p - 1):
+        t = (t.unsqueeze(-1) * u.unsqueeze(-2)).flatten(-2)
+    return t.sum(-2) / math.sqrt(v.shape[0])
+
+
+@functools.lru_cache(maxsize=8)
+def _embedding_grid(shape: str, n: int) -> tuple[Tensor, Tensor]:
+    from .lie import SO3
+
+    grid = SO3().sample_uniform((n,), generator=torch.Generator().manual_seed(20240601), dtype=torch.float64)
+    return grid, invariant_embedding(shape, grid)
+
+
+def decode_embedding(shape: str, phi: Tensor, *, grid_size: int = 8192, iterations: int = 30) -> Tensor:
+    """A rotation whose :func:`invariant_embedding` is closest to ``phi (B, D)`` → ``(B, 3, 3)``
+    (any one of its equivalents): the nearest of ``grid_size`` fixed Haar-random rotations (≈ 8°
+    apart at 8192), refined by ``iterations`` Adam steps on ``‖φ(R₀·Exp(δ)) − phi‖²``. Not
+    differentiable in ``phi`` (the result is detached). Exact inputs are recovered to ≈ 0.2°."""
+    from .lie import SO3
+
+    grid, table = _embedding_grid(_check_shape(shape), int(grid_size))
+    target = phi.detach().to(torch.float32)
+    idx = torch.cdist(target, table.to(device=phi.device, dtype=torch.float32)).argmin(-1)
+    R0 = grid.to(device=phi.device, dtype=torch.float32)[idx]
+    if iterations <= 0 or len(phi) == 0:
+        return R0.to(phi.dtype)
+    so3 = SO3()
+    delta = torch.zeros(len(phi), 3, device=phi.device, requires_grad=True)
+    opt = torch.optim.Adam([delta], lr=0.03)
+    with torch.enable_grad():
+        for _ in range(int(iterations)):
+            err = (invariant_embedding(shape, R0 @ so3.exp(delta)) - target).square().sum()
+            opt.zero_grad()
+            err.backward()
+            opt.step()
+    return (R0 @ so3.exp(delta.detach())).to(phi.dtype)
+
+
 __all__ = [
     "SHAPES",
     "GENERATORS_DOC",
@@ -312,6 +389,9 @@ __all__ = [
     "symmetry_group",
     "equivalent_rotations",
     "canonical_rotation",
+    "decode_embedding",
+    "embedding_dim",
+    "invariant_embedding",
     "min_angle_to_equivalents",
     "rotation_angle",
     "set_chordal_sq",

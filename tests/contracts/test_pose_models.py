@@ -42,6 +42,15 @@ VARIANTS = {
     "regression": REGRESSION,
     "regression_crop": [*REGRESSION, "encoder.crop_size=32"],
     "iterative_regression": ITERATIVE,
+    "anchored_aux_invariant_crop": [
+        *ANCHOR,
+        "module.aux_weight=1.0",
+        "encoder.crop_size=32",
+        "encoder.rotation_head=invariant",
+    ],
+    "regression_invariant": [*REGRESSION, "encoder.rotation_head=invariant"],
+    "iterative_regression_invariant": [*ITERATIVE, "encoder.rotation_head=invariant"],
+    "paper_invariant_probe": ["encoder=pose", "encoder.rotation_head=invariant"],
 }
 
 _CACHE: dict[str, object] = {}

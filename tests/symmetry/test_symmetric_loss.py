@@ -94,3 +94,62 @@ def test_set_version_matches_the_finite_groups_with_padding() -> None:
     ref = torch.stack([symmetric_chordal_sq("tet" if i % 2 == 0 else "cube", Q[i], R[i]) for i in range(4)])
     assert_close(out, ref)
     assert set_chordal_sq(R[:, None] @ sym[:, :1], R, sym, mask).abs().max() < 1e-12
+
+
+# ----------------------------------------------------------------------------- invariant embeddings
+from posediff.symmetry import decode_embedding, embedding_dim, invariant_embedding  # noqa: E402
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_embedding_is_invariant_exactly_under_the_group(shape: str) -> None:
+    R = _rand(16, 10)
+    G = symmetry_group(shape, dtype=F64, step_deg=7.5)
+    phi = invariant_embedding(shape, R)
+    assert phi.shape == (16, embedding_dim(shape))
+    eq = invariant_embedding(shape, R[:, None] @ G[None])
+    assert (eq - phi[:, None]).abs().max() < 1e-12
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_embedding_separates_poses_that_are_not_equivalent(shape: str) -> None:
+    """Injective modulo the group: a pose's embedding is decoded to an equivalent pose, and poses
+    away from every equivalent have distinct embeddings."""
+    R = _rand(24, 11)
+    back = decode_embedding(shape, invariant_embedding(shape, R).float())
+    assert torch.rad2deg(min_angle_to_equivalents(shape, back.double(), R)).max() < 1.5
+    Q = _rand(24, 12)
+    far = min_angle_to_equivalents(shape, Q, R) > 0.2
+    gap = (invariant_embedding(shape, Q) - invariant_embedding(shape, R)).norm(dim=-1)
+    assert (gap[far] > 1e-3).all()
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_embedding_is_continuous_and_has_finite_gradients(shape: str) -> None:
+    R = _rand(8, 13)
+    small = SO3().exp(torch.full((8, 3), 1e-6, dtype=F64))
+    assert (invariant_embedding(shape, R @ small) - invariant_embedding(shape, R)).abs().max() < 1e-4
+    x = torch.zeros(8, 3, dtype=F64, requires_grad=True)
+    invariant_embedding(shape, R @ SO3().exp(x)).square().sum().backward()
+    assert torch.isfinite(x.grad).all()
+
+
+def test_pose_encoder_embedding_loss_is_zero_at_the_truth_and_needs_its_shapes() -> None:
+    from posediff.nn import Encoding, PoseEncoder
+
+    enc = PoseEncoder(
+        image_size=32, out_dim=8, translation=False, rotation_head="invariant", shapes=["tet", "cube"]
+    )
+    R = _rand(4, 14).float()
+    ids = torch.tensor([0, 1, 0, 1])  # tet, cube (indices in SHAPES)
+    emb = torch.zeros(4, 27 + 81)
+    emb[ids == 0, :27] = invariant_embedding("tet", R[ids == 0])
+    emb[ids == 1, 27:] = invariant_embedding("cube", R[ids == 1])
+    logits = torch.full((4, 2), -30.0)
+    logits[torch.arange(4), ids] = 30.0
+    out = Encoding(torch.zeros(4, 8), None, embedding=emb, shape_logits=logits)
+    assert enc.embedding_loss(out, ids, R).abs().max() < 1e-5
+    decoded = enc.decode(emb, logits)
+    for i, name in enumerate(["tet", "cube", "tet", "cube"]):
+        assert torch.rad2deg(min_angle_to_equivalents(name, decoded[i].double(), R[i].double())) < 1.5
+    with pytest.raises(ValueError, match="covers"):
+        enc.embedding_loss(out, torch.tensor([0, 1, 2, 3]), R)

@@ -37,7 +37,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from ..symmetry import SHAPES, decode_embedding, embedding_dim, invariant_embedding
 from .encoder import ResNetEncoder
+
+#: the rotation heads: a 6-D rotation (Gram–Schmidt), or symmetry-invariant embeddings per shape
+ROTATION_HEADS = ("6d", "invariant")
 
 __all__ = ["Encoding", "PoseEncoder", "ray_rotation", "rotation_from_6d"]
 
@@ -74,7 +78,8 @@ class Encoding:
     """What :class:`PoseEncoder` returns: the denoiser's ``feature (B, F)``, the anchor's
     ``rotation (B, 3, 3)`` and ``translation (B, 3)`` (scene frame; ``None`` for rotation-only), and
     the locator's own estimate ``located (B, 3)`` (``None`` without a crop), trained by regression;
-    ``crop_translation`` / ``ray`` the crop's translation and ray rotation (``None`` without a crop)."""
+    ``crop_translation`` / ``ray`` the crop's translation and ray rotation (``None`` without a crop);
+    ``embedding`` / ``shape_logits`` the invariant head's outputs (``None`` for the 6-D head)."""
 
     feature: Tensor
     rotation: Tensor
@@ -82,6 +87,8 @@ class Encoding:
     located: Tensor | None = None
     crop_translation: Tensor | None = None
     ray: Tensor | None = None
+    embedding: Tensor | None = None
+    shape_logits: Tensor | None = None
 
 
 class _Locator(nn.Module):
@@ -145,6 +152,12 @@ class PoseEncoder(nn.Module):
             around the truth — about the locator's error (its depth, from apparent size, is the coarsest).
         fov_deg, scene_distance: the camera (module docstring).
         locator_width: channels of the locator's second convolution.
+        rotation_head: ``"6d"`` (a rotation by Gram–Schmidt, trained by ``min_S ‖R̂ − R·S‖²``) or
+            ``"invariant"`` (beyond the paper, SYMSOL shapes): per shape the symmetry-invariant
+            embedding φ(R_allo) of :func:`~posediff.symmetry.invariant_embedding` plus shape logits,
+            regressed by squared error — a continuous target, where a rotation picked out of the
+            equivalence class jumps; the rotation is decoded from it (no gradient).
+        shapes: the shapes the invariant head covers (its classifier's classes).
     """
 
     def __init__(
@@ -163,8 +176,23 @@ class PoseEncoder(nn.Module):
         fov_deg: float = 60.0,
         scene_distance: float = 5.25 / math.tan(math.radians(30.0)),
         locator_width: int = 32,
+        rotation_head: str = "6d",
+        shapes: Sequence[str] = SHAPES,
     ) -> None:
         super().__init__()
+        if rotation_head not in ROTATION_HEADS:
+            raise ValueError(
+                f"unknown rotation_head {rotation_head!r}; choose one of: {', '.join(ROTATION_HEADS)}"
+            )
+        self.rotation_head = rotation_head
+        self.shapes = tuple(str(x) for x in shapes)
+        unknown = [x for x in self.shapes if x not in SHAPES]
+        if rotation_head == "invariant" and (unknown or not self.shapes):
+            raise ValueError(
+                f"rotation_head=invariant covers the SYMSOL shapes {SHAPES}; got shapes={list(shapes)}"
+            )
+        #: decode the invariant head's rotation in training too (the anchored denoiser needs it)
+        self.decode_in_training = True
         if crop_size is not None and not translation:
             raise ValueError(
                 "crop_size needs poses with a translation (se3 / r3so3); use crop_size=null for so3"
@@ -195,11 +223,22 @@ class PoseEncoder(nn.Module):
             nn.Conv2d(channels, head_channels, 1), nn.ReLU(inplace=True), nn.Flatten()
         )
         self.dense = nn.Linear(head_channels * side * side + geometry, self.out_dim)
-        self.pose_head = nn.Linear(self.out_dim, 6 + (3 if self.translation else 0))
-        with torch.no_grad():  # start at the identity rotation and zero translation
+        # the invariant head: one slice per shape (its embedding), then one logit per shape
+        self._slices: dict[str, tuple[int, int]] = {}
+        width = 6
+        if rotation_head == "invariant":
+            width = 0
+            for name in self.shapes:
+                self._slices[name] = (width, width + embedding_dim(name))
+                width += embedding_dim(name)
+            width += len(self.shapes)
+        self.rotation_width = width
+        self.pose_head = nn.Linear(self.out_dim, width + (3 if self.translation else 0))
+        with torch.no_grad():  # start at the identity rotation (6-D head) and zero translation
             self.pose_head.weight.mul_(0.1)
             self.pose_head.bias.zero_()
-            self.pose_head.bias[:6] = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+            if rotation_head == "6d":
+                self.pose_head.bias[:6] = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
         self.locator = (
             _Locator(self.image_size, locator_width, self.focal, self.scene_distance)
             if self.crop_size is not None
@@ -287,23 +326,70 @@ class PoseEncoder(nn.Module):
         f = self.reduce(self.trunk((x - self.mean) / self.std))
         t_crop = extra[0] if extra else None
         feature = self.dense(torch.cat([f, t_crop], dim=1) if t_crop is not None else f)
-        rotation, translation = self.head_pose(feature, ray, t_crop)
-        return Encoding(feature, rotation, translation, located, t_crop, ray)
+        rotation, translation, embedding, logits = self.head_pose(feature, ray, t_crop)
+        return Encoding(feature, rotation, translation, located, t_crop, ray, embedding, logits)
 
     def head_pose(
         self, feature: Tensor, ray: Tensor | None = None, crop_translation: Tensor | None = None
-    ) -> tuple[Tensor, Tensor | None]:
+    ) -> tuple[Tensor | None, Tensor | None, Tensor | None, Tensor | None]:
         """The pose head on a feature: rotation ``(B, 3, 3)`` (egocentric: ``R_ray · R_allo`` with a
-        crop) and translation ``(B, 3)`` (the crop's plus the head's offset; ``None`` for rotation-only).
-        Called on a detached feature it is a linear probe of what the encoder sees."""
+        crop), translation ``(B, 3)`` (the crop's plus the head's offset; ``None`` for rotation-only),
+        and for the invariant head its embeddings ``(B, D)`` and shape logits ``(B, K)`` (the rotation
+        is then decoded for the most likely shape, without gradient; ``None`` in training unless
+        :attr:`decode_in_training`). Called on a detached feature it is a linear probe."""
         head = self.pose_head(feature)
-        rotation = rotation_from_6d(head[:, :6])
-        if ray is not None:
+        embedding = logits = None
+        if self.rotation_head == "6d":
+            rotation: Tensor | None = rotation_from_6d(head[:, :6])
+        else:
+            embedding = head[:, : self.rotation_width - len(self.shapes)]
+            logits = head[:, self.rotation_width - len(self.shapes) : self.rotation_width]
+            rotation = None
+            if not self.training or self.decode_in_training:
+                rotation = self.decode(embedding, logits)
+        if ray is not None and rotation is not None:
             rotation = ray @ rotation
         translation = None
         if self.translation:
-            translation = head[:, 6:9] + (crop_translation if crop_translation is not None else 0.0)
-        return rotation, translation
+            w = self.rotation_width
+            translation = head[:, w : w + 3] + (crop_translation if crop_translation is not None else 0.0)
+        return rotation, translation, embedding, logits
+
+    def decode(self, embedding: Tensor, logits: Tensor, **kw: int) -> Tensor:
+        """The (allocentric) rotations of invariant-head outputs: each input decoded
+        (:func:`~posediff.symmetry.decode_embedding`) with the embedding of its most likely shape."""
+        best = logits.detach().argmax(-1)
+        out = torch.eye(3, dtype=embedding.dtype, device=embedding.device).repeat(len(embedding), 1, 1)
+        for k in best.unique().tolist():
+            sel = best == k
+            name = self.shapes[int(k)]
+            i, j = self._slices[name]
+            out[sel] = decode_embedding(name, embedding[sel, i:j], **kw)
+        return out
+
+    def embedding_loss(self, enc: Encoding, shape_ids: Tensor, R_gt: Tensor) -> Tensor:
+        """The invariant head's symmetry-aware loss per input ``(B,)``: the squared error of the true
+        shape's embedding against ``φ(R_allo)`` of the ground truth (``R_allo = R_rayᵀ R``), plus the
+        cross-entropy of the shape logits. ``shape_ids`` index :data:`~posediff.symmetry.SHAPES`."""
+        if enc.embedding is None or enc.shape_logits is None:
+            raise ValueError(
+                "embedding_loss needs an encoding of the invariant head (rotation_head=invariant)"
+            )
+        R = R_gt.to(enc.embedding.dtype)
+        if enc.ray is not None:
+            R = enc.ray.mT @ R
+        pos = torch.tensor([self.shapes.index(SHAPES[int(k)]) if SHAPES[int(k)] in self.shapes else -1
+                            for k in shape_ids.tolist()], device=shape_ids.device)  # fmt: skip
+        if bool((pos < 0).any()):
+            raise ValueError(f"the invariant head covers {list(self.shapes)}; the batch has other shapes")
+        loss = nn.functional.cross_entropy(enc.shape_logits, pos, reduction="none")
+        for k in pos.unique().tolist():
+            sel = pos == k
+            name = self.shapes[int(k)]
+            i, j = self._slices[name]
+            target = invariant_embedding(name, R[sel])
+            loss[sel] = loss[sel] + (enc.embedding[sel, i:j] - target).square().sum(-1)
+        return loss
 
     def extra_repr(self) -> str:
         return (
