@@ -34,7 +34,7 @@ test: ## the default test suite (not slow, not gpu)
 test-all: ## every test, slow ones included
 	$(PY) -m pytest -q -m "not gpu"
 
-demo: ## render a small SYMSOL-T, train `quickstart` on the CPU, evaluate, predict (≈15 min on 2 cores; outputs/demo/)
+demo: ## render a small SYMSOL-T, train `quickstart` on the CPU, evaluate, predict (≈15 min on 2 cores; outputs/demo/; progress in outputs/demo.partial/fit/progress.log)
 	$(VENV)/bin/posediff demo trainer.enable_progress_bar=false
 
 walkthrough: ## the Lie group walk-through (notebooks/01) in full mode; figures in outputs/walkthrough/
@@ -55,6 +55,14 @@ bench-tuned: ## the same with glibc keeping large blocks (writes benchmarks/resu
 toy: ## the symmetric-shape toy, every ablation variant (~2.5 h on one core; writes benchmarks/results/toy.json, toy.md)
 	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/toy.py
 
+learning-speed: ## what makes orientation learn soonest on a CPU: 10 variants × 1000 steps (≈ 45 min, 2 at a time; writes benchmarks/results/learning_speed.json, .md)
+	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/learning_speed.py --parallel 2
+
+pretrain: ## posediff pretrain: the encoder by symmetry-aware regression on the 128 px renders (writes data/pretrained/symsolt_resnet18_crop64.pt)
+	$(VENV)/bin/posediff data render dataset=symsolt split=train image_size=128 out=data/symsolt_uniform_cpu128 progress=false
+	$(VENV)/bin/posediff data render dataset=symsolt split=test image_size=128 out=data/symsolt_uniform_cpu128 progress=false
+	$(VENV)/bin/posediff pretrain trainer.enable_progress_bar=false
+
 bench-render: ## SYMSOL-T rendering speed vs a training step (writes benchmarks/results/render.json)
 	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/render.py
 
@@ -72,4 +80,4 @@ clean: ## remove caches and outputs (keeps .venv)
 	rm -rf .pytest_cache outputs multirun build dist
 	find . -name __pycache__ -type d -prune -exec rm -rf {} +
 
-.PHONY: help install system-deps test test-all demo walkthrough figures bench bench-tuned bench-render notebooks lint clean
+.PHONY: help install system-deps test test-all demo walkthrough figures bench bench-tuned bench-render learning-speed pretrain notebooks lint clean

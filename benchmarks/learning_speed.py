@@ -15,8 +15,8 @@ its CSV log:
 Also, once: the schedule's share of levels below 0.1 / 0.35 rad and whether its top level reaches
 the Haar prior the samplers start from.
 
-    python benchmarks/learning_speed.py                       # every variant (hours on 2 cores)
-    python benchmarks/learning_speed.py --only crop128_anchor_aux paper --steps 1500
+    python benchmarks/learning_speed.py --parallel 2          # every variant, 1000 steps (≈ 45 min on 2 cores)
+    python benchmarks/learning_speed.py --only quickstart paper --steps 1000
     python benchmarks/learning_speed.py --list
 
 Results go to ``benchmarks/results/learning_speed.json`` (updated after every run, so an
@@ -32,7 +32,9 @@ import math
 import os
 import subprocess
 import sys
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,52 +43,43 @@ POSEDIFF = [sys.executable, "-m", "posediff.cli"]
 
 D64 = ["data.root=data/symsolt_uniform_cpu", "data.image_size=64"]
 D128 = ["data.root=data/symsolt_uniform_cpu128", "data.image_size=128"]
-POSE = ["encoder=pose"]
-CROP = ["encoder.crop_size=64"]
-
-#: name → (what it tests, overrides of ``+experiment=quickstart``)
-ANCHOR = ["module.anchor=true"]
-AUX = ["module.anchor=true", "module.aux_weight=1.0"]
+WHOLE = ["encoder.crop_size=null"]
+SIXD = ["encoder.rotation_head=6d"]
+PAPER_INPUT = ["module.anchor=false", "module.aux_weight=0.0"]
+DIFFUSION_ONLY = ["module.aux_weight=0.0"]
 REGRESSION = ["module._target_=posediff.regression.PoseRegressionModule", "module.denoiser=null"]
+OLD = ["module.lr=3e-4", "module.lr_final=3e-5", "schedule.noise_end=1.0"]
+
+#: name → (what it tests, overrides of ``+experiment=quickstart``: locate-then-crop from 128 px, the
+#: invariant head, anchored + auxiliary loss, Adam 1e-4, σ_max 1.97 rad)
 VARIANTS: dict[str, tuple[str, list[str]]] = {
-    "paper": ("the paper's model (whole 64 px image, input Log X̃), pose head as a linear probe", D64 + POSE),
-    "anchor_aux_64": ("anchored + auxiliary loss, whole 64 px image (no crop)", D64 + POSE + AUX),
-    "crop64_anchor_aux": (
-        "locate-then-crop from 64 px images, anchored + auxiliary loss",
-        D64 + POSE + CROP + AUX,
+    "paper": (
+        "the previous quickstart: the paper's model on the whole 64 px image (input Log X̃, Adam 3e-4, "
+        "σ_max 0.985); 6-D pose head as a linear probe",
+        D64 + WHOLE + SIXD + PAPER_INPUT + OLD,
     ),
-    "crop128_paper_input": (
-        "locate-then-crop from 128 px images, the paper's input Log X̃ (linear probe)",
-        D128 + POSE + CROP,
+    "crop_paper_input": (
+        "locate-then-crop, the paper's input Log X̃ (invariant head as a linear probe)",
+        PAPER_INPUT,
     ),
-    "crop128_anchor": (
-        "locate-then-crop from 128 px, anchored, diffusion loss only (no symmetry labels)",
-        D128 + POSE + CROP + ANCHOR,
+    "crop_anchor_6d": (
+        "locate-then-crop, anchored, diffusion loss only (no symmetry labels; 6-D anchor)",
+        SIXD + DIFFUSION_ONLY,
     ),
-    "crop128_anchor_aux": (
-        "locate-then-crop from 128 px, anchored + auxiliary loss",
-        D128 + POSE + CROP + AUX,
+    "crop_anchor_aux_6d": ("locate-then-crop, anchored + auxiliary loss, 6-D head", SIXD),
+    "quickstart": ("locate-then-crop, anchored + auxiliary loss, invariant head (the new quickstart)", []),
+    "quickstart_64px": ("the same from 64 px images (crop 64 px upsampled)", D64),
+    "quickstart_lr3e-4": ("the same at Adam 3e-4 → 3e-5", ["module.lr=3e-4", "module.lr_final=3e-5"]),
+    "quickstart_r3so3": ("the same on R³×SO(3)", ["group=r3so3"]),
+    "regression_6d": (
+        "locate-then-crop, the regression baseline, 6-D head (min over the symmetries)",
+        SIXD + REGRESSION,
     ),
-    "crop128_regression": (
-        "locate-then-crop from 128 px, regression baseline",
-        D128 + POSE + CROP + REGRESSION,
-    ),
-    "crop128_anchor_aux_r3so3": (
-        "as crop128_anchor_aux on R³×SO(3)",
-        D128 + POSE + CROP + AUX + ["group=r3so3"],
-    ),
-    "crop128_anchor_aux_lr1e-4": (
-        "as crop128_anchor_aux at Adam 1e-4 → 1e-5",
-        D128 + POSE + CROP + AUX + ["module.lr=1e-4", "module.lr_final=1e-5"],
-    ),
-    "crop128_anchor_aux_pretrained": (
-        "as crop128_anchor_aux, encoder from `posediff pretrain` (data/pretrained/symsolt_resnet18_crop64.pt)",
-        D128 + POSE + CROP + AUX + ["encoder.weights=data/pretrained/symsolt_resnet18_crop64.pt"],
-    ),
+    "regression_invariant": ("locate-then-crop, the regression baseline, invariant head", REGRESSION),
 }
 
 
-def schedule_report() -> dict[str, float | bool]:
+def schedule_report(overrides: tuple[str, ...] = ()) -> dict[str, float | bool]:
     """The quickstart schedule's share of levels below 0.1 / 0.35 rad and its top level vs the prior."""
     import torch
     from hydra import compose, initialize_config_dir
@@ -96,7 +89,7 @@ def schedule_report() -> dict[str, float | bool]:
 
     register_resolvers()
     with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose("fit", overrides=["+experiment=quickstart"])
+        cfg = compose("fit", overrides=["+experiment=quickstart", *overrides])
     sched = instantiate(cfg.schedule)
     sig = sched.sigma(torch.arange(sched.num_levels), dtype=torch.float64)
     from posediff.diffusion import ConcentratedGaussian
@@ -189,26 +182,51 @@ def _fmt(x: float | None, digits: int = 1) -> str:
     return "–" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}f}"
 
 
+def _last(curves: dict, key: str) -> float | None:
+    v = curves.get(key, [])
+    return v[-1][1] if v else None
+
+
+def _mean(curves: dict, key: str) -> float | None:
+    v = [x for _, x in curves.get(key, [])]
+    return sum(v) / len(v) if v else None
+
+
 def markdown(results: dict) -> str:
     lines = [
-        "| variant | steps | train s | anchor ° (held out) | val rot. loss | tet / cube / icosa / cone / cyl spread ° | R@10° | cube cov. | t err |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| variant | steps | train s | held-out anchor ° (every 250 steps) | anchor tet / cube / cone / cyl ° | "
+        "val rot. loss | spread tet / cube / icosa / cone / cyl ° | R@10° | cube cov. | t err | enc. grad rot / trans |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, r in results.get("runs", {}).items():
         if "eval" not in r:
-            lines.append(f"| {name} | – | – | failed (exit {r.get('exit_code')}) | | | | | |")
+            lines.append(f"| {name} | – | – | failed (exit {r.get('exit_code')}) | | | | | | | |")
             continue
-        sh = r["eval"]["shapes"]
-        anchor = r["curves"].get("val/anchor_deg", [])
-        rl = r["curves"].get("val/rotation_loss", [])
+        sh, c = r["eval"]["shapes"], r["curves"]
+        anchor = c.get("val/anchor_deg", [])
+        per_shape = " / ".join(_fmt(_last(c, f"val/anchor_deg_{s}")) for s in ("tet", "cube", "cone", "cyl"))
         spreads = " / ".join(
             _fmt(sh.get(s, {}).get("spread_deg")) for s in ("tet", "cube", "icosa", "cone", "cyl")
         )
+        grads = (
+            f"{_fmt(_mean(c, 'grad/encoder_rotation'), 2)} / {_fmt(_mean(c, 'grad/encoder_translation'), 2)}"
+        )
         lines.append(
             f"| {name} | {r['train']['steps']} | {r['train']['seconds']:.0f} | "
-            f"{' → '.join(_fmt(v) for _, v in anchor[::2] + anchor[-1:]) if anchor else '–'} | "
-            f"{_fmt(rl[-1][1], 2) if rl else '–'} | {spreads} | {_fmt(r['eval']['overall'].get('recall_rot@10'), 3)} | "
-            f"{_fmt(sh.get('cube', {}).get('coverage'), 2)} | {_fmt(r['eval']['overall'].get('translation_error'), 3)} |"
+            f"{' → '.join(_fmt(v) for _, v in anchor) if anchor else '–'} | {per_shape} | "
+            f"{_fmt(_last(c, 'val/rotation_loss'), 2)} | {spreads} | {_fmt(r['eval']['overall'].get('recall_rot@10'), 3)} | "
+            f"{_fmt(sh.get('cube', {}).get('coverage'), 2)} | {_fmt(r['eval']['overall'].get('translation_error'), 3)} | {grads} |"
+        )
+    for key in ("schedule_before", "schedule"):
+        sched = results.get(key)
+        if not sched:
+            continue
+        lines.append(
+            f"\nSchedule ({sched['schedule']}, {sched['num_levels']} levels, σ_max {sched['sigma_max']:.3f}): "
+            f"{100 * sched['share_below_0.1']:.0f} % of the levels below 0.1 rad, {100 * sched['share_below_0.35']:.0f} % "
+            f"below 0.35 rad; top level's mean rotation angle {sched['top_level_mean_angle_rad']:.2f} rad vs the Haar "
+            f"prior's {sched['haar_mean_angle_rad']:.2f} (reaches the prior: {sched['top_reaches_prior']})"
+            + (" — the previous quickstart." if key == "schedule_before" else " — quickstart now.")
         )
     return "\n".join(lines) + "\n"
 
@@ -216,12 +234,20 @@ def markdown(results: dict) -> str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", nargs="*", default=None, help="variants to run (default: all)")
-    parser.add_argument("--steps", type=int, default=1500)
+    parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument("--probe-every", type=int, default=100)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--parallel", type=int, default=1, help="runs at a time (threads split between them)")
+    parser.add_argument(
+        "--threads", type=int, default=None, help="torch threads per run (default: 2 / parallel)"
+    )
     parser.add_argument("--out", default=str(RESULTS / "learning_speed.json"))
     parser.add_argument("--list", action="store_true")
-    parser.add_argument("extra", nargs="*", help="overrides for every run (e.g. eval.num_samples=50)")
+    parser.add_argument(
+        "extra",
+        nargs="*",
+        default=["eval.num_samples=50", "eval.num_steps=[50]"],
+        help="overrides for every run (default: eval.num_samples=50 eval.num_steps=[50])",
+    )
     a = parser.parse_args()
     if a.list:
         for k, (what, ov) in VARIANTS.items():
@@ -232,23 +258,37 @@ def main() -> int:
     if unknown:
         print(f"unknown variants {unknown}; available: {', '.join(VARIANTS)}", file=sys.stderr)
         return 2
+    for root, size in (("data/symsolt_uniform_cpu", 64), ("data/symsolt_uniform_cpu128", 128)):
+        if not (ROOT / root / "test" / "index.npz").is_file():
+            print(
+                f"learning_speed: {root} is missing; make it with: posediff data render dataset=symsolt split=train "
+                f"image_size={size} out={root} && posediff data render dataset=symsolt split=test image_size={size} out={root}",
+                file=sys.stderr,
+            )
+            return 2
+    threads = a.threads or max(1, 2 // max(a.parallel, 1))
     out = Path(a.out)
     results = json.loads(out.read_text()) if out.is_file() else {}
-    results.setdefault("schedule", schedule_report())
+    results["schedule"] = schedule_report()
+    results["schedule_before"] = schedule_report(("schedule.noise_end=1.0",))
     results.setdefault("runs", {})
-    for name in names:
+    lock = threading.Lock()
+
+    def one(name: str) -> None:
         print(f"[learning_speed] {name}: {VARIANTS[name][0]}", flush=True)
-        r = run_variant(name, a.steps, a.probe_every, a.threads, a.extra)
-        results["runs"][name] = r
-        if out.is_file():  # another study process may have written meanwhile: merge
-            disk = json.loads(out.read_text())
-            disk.setdefault("runs", {}).update({name: r})
-            results = {**disk, "schedule": results["schedule"]}
-        tmp = out.with_suffix(".tmp")
-        tmp.write_text(json.dumps(results, indent=1))
-        tmp.replace(out)
-        out.with_suffix(".md").write_text(markdown(results))
-        print(markdown({"runs": {name: r}}), flush=True)
+        r = run_variant(name, a.steps, a.probe_every, threads, a.extra)
+        with lock:  # merge with what is on disk (other runs, other study processes), write atomically
+            disk = json.loads(out.read_text()) if out.is_file() else {"runs": {}}
+            disk.setdefault("runs", {})[name] = r
+            disk["schedule"], disk["schedule_before"] = results["schedule"], results["schedule_before"]
+            tmp = out.with_suffix(".tmp")
+            tmp.write_text(json.dumps(disk, indent=1))
+            tmp.replace(out)
+            out.with_suffix(".md").write_text(markdown(disk))
+            print(markdown({"runs": {name: r}}), flush=True)
+
+    with ThreadPoolExecutor(max_workers=max(a.parallel, 1)) as pool:
+        list(pool.map(one, names))
     return 0
 
 

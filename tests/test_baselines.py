@@ -32,8 +32,10 @@ SMALL = [
     "trainer.log_every_n_steps=1",
 ]
 REGRESSION = ["encoder=pose", "module._target_=posediff.regression.PoseRegressionModule"]
+PAPER = ["encoder=resnet", "module.anchor=false", "module.aux_weight=0.0"]
 MODELS = {
-    "paper": [],
+    "paper": PAPER,
+    "quickstart": ["encoder.crop_size=32"],
     "anchored_aux_crop": [
         "encoder=pose",
         "encoder.crop_size=32",
@@ -41,7 +43,12 @@ MODELS = {
         "module.aux_weight=1.0",
     ],
     "regression": [*REGRESSION, "module.denoiser=null", "encoder.crop_size=32"],
-    "iterative_regression": [*REGRESSION, "+module.iterations=2"],
+    "iterative_regression": [
+        *REGRESSION,
+        "+module.iterations=2",
+        "encoder.crop_size=null",
+        "encoder.rotation_head=6d",
+    ],
 }
 
 

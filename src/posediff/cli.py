@@ -191,7 +191,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _demo(args: list[str]) -> int:
     """``posediff demo``: the README's first run, made of the other commands (each its own Hydra run).
 
-    Renders the ``cpu``-preset SYMSOL-T (skipped when already there), trains and evaluates
+    Renders the ``cpu``-preset SYMSOL-T at 128 px (skipped when already there), trains and evaluates
     ``+experiment=quickstart`` (before and after), and predicts one test image each of a
     tetrahedron, a cube and a cylinder. Everything lands in ``out`` (default ``outputs/demo``),
     which is replaced only when the whole run succeeded.
@@ -209,11 +209,12 @@ def _demo(args: list[str]) -> int:
     partial = out.with_name(out.name + ".partial")
     shutil.rmtree(partial, ignore_errors=True)
     start = time.perf_counter()
-    data_root = "data/symsolt_uniform_cpu"
+    data_root = "data/symsolt_uniform_cpu128"  # the cpu preset at 128 px (quickstart crops 64 px from it)
     for split in ("train", "test"):
         code = main(
-            ["data", "render", "dataset=symsolt", f"split={split}", f"out={data_root}", "progress=false"]
-        )
+            ["data", "render", "dataset=symsolt", f"split={split}", "image_size=128", f"out={data_root}",
+             "progress=false"]
+        )  # fmt: skip
         if code:
             return code
     fit_dir = partial / "fit"

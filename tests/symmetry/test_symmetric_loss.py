@@ -105,7 +105,7 @@ def test_embedding_is_invariant_exactly_under_the_group(shape: str) -> None:
     R = _rand(16, 10)
     G = symmetry_group(shape, dtype=F64, step_deg=7.5)
     phi = invariant_embedding(shape, R)
-    assert phi.shape == (16, embedding_dim(shape))
+    assert phi.shape == (16, embedding_dim(shape)) and embedding_dim(shape) == 48
     eq = invariant_embedding(shape, R[:, None] @ G[None])
     assert (eq - phi[:, None]).abs().max() < 1e-12
 
@@ -141,9 +141,9 @@ def test_pose_encoder_embedding_loss_is_zero_at_the_truth_and_needs_its_shapes()
     )
     R = _rand(4, 14).float()
     ids = torch.tensor([0, 1, 0, 1])  # tet, cube (indices in SHAPES)
-    emb = torch.zeros(4, 27 + 81)
-    emb[ids == 0, :27] = invariant_embedding("tet", R[ids == 0])
-    emb[ids == 1, 27:] = invariant_embedding("cube", R[ids == 1])
+    emb = torch.zeros(4, 48 + 48)
+    emb[ids == 0, :48] = invariant_embedding("tet", R[ids == 0])
+    emb[ids == 1, 48:] = invariant_embedding("cube", R[ids == 1])
     logits = torch.full((4, 2), -30.0)
     logits[torch.arange(4), ids] = 30.0
     out = Encoding(torch.zeros(4, 8), None, embedding=emb, shape_logits=logits)
