@@ -59,6 +59,8 @@ class PoseDiffusionModule(L.LightningModule):
             *linear probe* on the detached feature (it never changes the encoder): ``anchor_deg``
             then tells whether the paper's encoder sees orientation.
         locate_weight: weight of the locator's translation regression (locate-then-crop encoders).
+        denoiser_lr: the denoiser's own Adam rate (``None``: ``lr``), decayed by the same factor — a
+            from-scratch image encoder wants a smaller step than the MLP denoiser (the toys' 1e-3).
         grad_probe_every: every N training steps, log the encoder's gradient norm from the rotation
             and the translation parts of the diffusion loss separately (two extra backward passes;
             0 = never).
@@ -84,6 +86,7 @@ class PoseDiffusionModule(L.LightningModule):
         aux_weight: float = 0.0,
         locate_weight: float = 1.0,
         grad_probe_every: int = 0,
+        denoiser_lr: float | None = None,
     ) -> None:
         super().__init__()
         if pose_input not in self.POSE_INPUTS:
@@ -105,6 +108,7 @@ class PoseDiffusionModule(L.LightningModule):
         self.aux_weight = float(aux_weight)
         self.locate_weight = float(locate_weight)
         self.grad_probe_every = int(grad_probe_every)
+        self.denoiser_lr = None if denoiser_lr is None else float(denoiser_lr)
         if (
             self.anchor
             and self.aux_weight == 0
@@ -302,7 +306,13 @@ class PoseDiffusionModule(L.LightningModule):
             checkpoint["posediff_diffusion"] = self.diffusion.describe()
 
     def configure_optimizers(self) -> dict[str, Any]:
-        params = [p for p in self.parameters() if p.requires_grad]
+        den = {id(p) for p in self.denoiser.parameters()}
+        rest = [p for p in self.parameters() if p.requires_grad and id(p) not in den]
+        params: list[dict[str, Any]] = [{"params": rest, "lr": self.lr}]
+        den_params = [p for p in self.denoiser.parameters() if p.requires_grad]
+        if den_params:
+            params.append({"params": den_params, "lr": self.denoiser_lr or self.lr})
+        params = [g for g in params if g["params"]]
         if self.weight_decay > 0:
             opt: torch.optim.Optimizer = torch.optim.AdamW(params, lr=self.lr, weight_decay=self.weight_decay)
         else:
