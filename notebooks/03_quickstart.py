@@ -11,7 +11,7 @@
 # # 03 — Quickstart: SYMSOL-T images → pose distributions, in Python
 #
 # The path `make demo` takes with the CLI, one step at a time through the Python API:
-# 1. **Render** a small SYMSOL-T (the five shapes at random poses and positions, 64 px) with
+# 1. **Render** a small SYMSOL-T (the five shapes at random poses and positions, 128 px) with
 #    `posediff.data.symsol.render_dataset` — what `posediff data render` calls.
 # 2. **Build** the model of `conf/experiment/quickstart.yaml` with Hydra's compose + instantiate
 #    (ResNet18 encoder run once per image, MLP denoiser, SE(3) diffusion) and **train** it with
@@ -61,7 +61,7 @@ DATA = OUT / "symsolt_quickstart"
 n_train, n_test = (8, 2) if FAST else (2000, 20)
 for split, n in (("train", n_train), ("test", n_test)):
     summary = render_dataset(
-        DATA, dataset="symsolt", split=split, n_per_shape=n, image_size=64, progress=False
+        DATA, dataset="symsolt", split=split, n_per_shape=n, image_size=128, progress=False
     )
     print(summary.line())
 
@@ -128,7 +128,7 @@ files = save_prediction(
     pred,
     OUT / "quickstart_predict",
     image=batch["image"][i],
-    K=intrinsics(64),
+    K=intrinsics(128),
     camera_offset=torch.tensor([0.0, 0.0, SCENE_DISTANCE]).numpy(),
     shape=shape,
     gt_pose=batch["pose"][i],

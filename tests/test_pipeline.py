@@ -19,6 +19,7 @@ from posediff.module import PoseDiffusionModule
 
 SMALL = [
     "+experiment=quickstart",
+    "group=se3",
     "data.mode=render",
     "data.image_size=32",
     "data.n_per_shape_train=4",

@@ -49,9 +49,14 @@ def test_crop_is_centred_on_the_projection_of_the_translation() -> None:
         assert abs(float(cx) - crop / 2) < 1.0 and abs(float(cy) - crop / 2) < 1.0
     # the crop side covers the object sphere: 2 f r / z pixels
     sides = enc.project(t)[0]
-    assert_close(sides[:, 2] - sides[:, 0], (sides[:1, 2] - sides[:1, 0]).expand(3)), "one crop scale at every depth"
+    (
+        assert_close(sides[:, 2] - sides[:, 0], (sides[:1, 2] - sides[:1, 0]).expand(3)),
+        "one crop scale at every depth",
+    )
     boxes, _ = enc.project(t[:1])
-    assert math.isclose(float(boxes[0, 2] - boxes[0, 0]), 2 * K[0, 0] * enc.crop_margin * 3.04 / SCENE_DISTANCE, rel_tol=1e-5)
+    assert math.isclose(
+        float(boxes[0, 2] - boxes[0, 0]), 2 * K[0, 0] * enc.crop_margin * 3.04 / SCENE_DISTANCE, rel_tol=1e-5
+    )
 
 
 @pytest.mark.parametrize("crop", [None, 32])
