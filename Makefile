@@ -55,7 +55,7 @@ bench-tuned: ## the same with glibc keeping large blocks (writes benchmarks/resu
 toy: ## the symmetric-shape toy, every ablation variant (~2.5 h on one core; writes benchmarks/results/toy.json, toy.md)
 	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/toy.py
 
-learning-speed: ## what makes orientation learn soonest on a CPU: 10 variants × 1000 steps (≈ 45 min, 2 at a time; writes benchmarks/results/learning_speed.json, .md)
+learning-speed: ## what makes orientation learn soonest on a CPU: 11 variants × 1000 steps (≈ 1 h, 2 at a time; writes benchmarks/results/learning_speed.json, .md)
 	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/learning_speed.py --parallel 2
 
 pretrain: ## posediff pretrain: the encoder by symmetry-aware regression on the 128 px renders (writes data/pretrained/symsolt_resnet18_crop64.pt)

@@ -51,7 +51,7 @@ REGRESSION = ["module._target_=posediff.regression.PoseRegressionModule", "modul
 OLD = ["module.lr=3e-4", "module.lr_final=3e-5", "schedule.noise_end=1.0"]
 
 #: name → (what it tests, overrides of ``+experiment=quickstart``: locate-then-crop from 128 px, the
-#: invariant head, anchored + auxiliary loss, Adam 1e-4, σ_max 1.97 rad)
+#: invariant head, anchored + auxiliary loss, R³×SO(3), Adam 1e-4 / denoiser 1e-3, σ_max 1.97 rad)
 VARIANTS: dict[str, tuple[str, list[str]]] = {
     "paper": (
         "the previous quickstart: the paper's model on the whole 64 px image (input Log X̃, Adam 3e-4, "
@@ -69,8 +69,9 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "crop_anchor_aux_6d": ("locate-then-crop, anchored + auxiliary loss, 6-D head", SIXD),
     "quickstart": ("locate-then-crop, anchored + auxiliary loss, invariant head (the new quickstart)", []),
     "quickstart_64px": ("the same from 64 px images (crop 64 px upsampled)", D64),
-    "quickstart_lr3e-4": ("the same at Adam 3e-4 → 3e-5", ["module.lr=3e-4", "module.lr_final=3e-5"]),
-    "quickstart_r3so3": ("the same on R³×SO(3)", ["group=r3so3"]),
+    "quickstart_lr3e-4": ("the same with the encoder at Adam 3e-4 → 3e-5", ["module.lr=3e-4", "module.lr_final=3e-5"]),
+    "quickstart_se3": ("the same on SE(3)", ["group=se3"]),
+    "quickstart_one_lr": ("the same with the denoiser at the encoder's 1e-4", ["module.denoiser_lr=null"]),
     "regression_6d": (
         "locate-then-crop, the regression baseline, 6-D head (min over the symmetries)",
         SIXD + REGRESSION,
