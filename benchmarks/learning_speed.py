@@ -69,7 +69,10 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "crop_anchor_aux_6d": ("locate-then-crop, anchored + auxiliary loss, 6-D head", SIXD),
     "quickstart": ("locate-then-crop, anchored + auxiliary loss, invariant head (the new quickstart)", []),
     "quickstart_64px": ("the same from 64 px images (crop 64 px upsampled)", D64),
-    "quickstart_lr3e-4": ("the same with the encoder at Adam 3e-4 → 3e-5", ["module.lr=3e-4", "module.lr_final=3e-5"]),
+    "quickstart_lr3e-4": (
+        "the same with the encoder at Adam 3e-4 → 3e-5",
+        ["module.lr=3e-4", "module.lr_final=3e-5"],
+    ),
     "quickstart_se3": ("the same on SE(3)", ["group=se3"]),
     "quickstart_one_lr": ("the same with the denoiser at the encoder's 1e-4", ["module.denoiser_lr=null"]),
     "regression_6d": (
