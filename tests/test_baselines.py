@@ -32,7 +32,7 @@ SMALL = [
     "trainer.log_every_n_steps=1",
 ]
 REGRESSION = ["encoder=pose", "module._target_=posediff.regression.PoseRegressionModule"]
-PAPER = ["encoder=resnet", "module.anchor=false", "module.aux_weight=0.0"]
+PAPER = ["encoder.crop_size=null", "encoder.rotation_head=6d", "module.anchor=false", "module.aux_weight=0.0"]
 MODELS = {
     "paper": PAPER,
     "quickstart": ["encoder.crop_size=32"],

@@ -55,7 +55,7 @@ def test_experiment_builds(experiment: str, request: pytest.FixtureRequest) -> N
     if images:
         assert cond.shape[-3:] == (3, cfg.data.image_size, cfg.data.image_size)
         assert cfg.encoder.image_size == cfg.data.image_size
-    feature = module.encode(cond)
+    feature = module.unpack(module.encode(cond))[0]  # the anchored denoiser packs its anchor behind
     assert feature.shape == (2, cfg.denoiser.cond_dim), "denoiser.cond_dim must match the condition"
     x = module.sample(cond, 3, 2)
     assert x.shape == (2, 3, module.group.matrix_dim, module.group.matrix_dim)

@@ -157,6 +157,9 @@ class PoseDiffusionModule(L.LightningModule):
     def anchor_pose(self, enc: Encoding) -> Tensor:
         """The anchor as a group element ``(B, n, n)`` (``[R̂ | t̂]`` for 4×4 groups)."""
         n = int(self.group.matrix_dim)
+        if enc.rotation is None and enc.embedding is not None:  # an invariant head not decoded in training
+            R = self.encoder.decode(enc.embedding, enc.shape_logits)
+            enc.rotation = R if enc.ray is None else enc.ray @ R
         if n == 3:
             return enc.rotation
         x = torch.zeros(*enc.rotation.shape[:-2], 4, 4, dtype=enc.rotation.dtype, device=enc.rotation.device)
