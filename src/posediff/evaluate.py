@@ -167,21 +167,18 @@ class SampledBatches:
             yield batch, x
 
     def summary(self) -> dict[str, Any]:
-        estimator = getattr(self.module, "estimator", None)
-        if estimator is not None:  # a regression model: one estimate, refined `iterations` times
-            return {
-                "seconds_per_input": self.seconds / max(self.count, 1),
-                "inputs": self.count,
-                "num_samples": int(self.num_samples),
-                "num_steps": int(getattr(self.module, "iterations", 0)),
-                "sampler": str(estimator),
-            }
-        s = self.sampler or self.module.sampler
-        steps = self.num_steps if self.num_steps is not None else s.num_steps
-        return {
+        out: dict[str, Any] = {
             "seconds_per_input": self.seconds / max(self.count, 1),
             "inputs": self.count,
             "num_samples": int(self.num_samples),
+        }
+        estimator = getattr(self.module, "estimator", None)
+        if estimator is not None:  # a regression model: one estimate, refined `iterations` times
+            return {**out, "num_steps": int(getattr(self.module, "iterations", 0)), "sampler": str(estimator)}
+        s = self.sampler or self.module.sampler
+        steps = self.num_steps if self.num_steps is not None else s.num_steps
+        return {
+            **out,
             "num_steps": steps if steps is not None else len(s.diffusion.schedule.timesteps(None)),
             "sampler": getattr(s, "name", type(s).__name__),
         }

@@ -33,6 +33,7 @@ import torch
 from torch import Tensor, nn
 
 from .diffusion import Diffusion, Sampler
+from .lie._pose import make_pose
 from .nn.pose_encoder import Encoding
 from .symmetry import SHAPES, set_chordal_sq, symsol_chordal_sq
 
@@ -118,6 +119,10 @@ class PoseDiffusionModule(L.LightningModule):
                 "the invariant rotation head is trained only by the symmetry-aware loss: with module.anchor=true "
                 "set module.aux_weight > 0, or use encoder.rotation_head=6d for an anchor trained by diffusion alone"
             )
+        #: whether the encoder places training crops by the target (``forward(image, pose=...)``)
+        self._encoder_takes_pose = _takes_pose(self.encoder)
+        #: weight of the translation's squared error in :meth:`anchor_loss` (the regression baselines set it)
+        self.translation_weight = 1.0
         if hasattr(self.encoder, "decode_in_training"):  # decode the invariant head in training only if used
             self.encoder.decode_in_training = self.anchor
         n = int(self.group.matrix_dim)
@@ -145,7 +150,7 @@ class PoseDiffusionModule(L.LightningModule):
         if isinstance(self.encoder, nn.Identity):
             out = cond
         else:
-            out = self.encoder(cond, pose=pose) if _takes_pose(self.encoder) else self.encoder(cond)
+            out = self.encoder(cond, pose=pose) if self._encoder_takes_pose else self.encoder(cond)
         if isinstance(out, Encoding):
             return out
         if self.anchor:
@@ -162,12 +167,9 @@ class PoseDiffusionModule(L.LightningModule):
             enc.rotation = R if enc.ray is None else enc.ray @ R
         if n == 3:
             return enc.rotation
-        x = torch.zeros(*enc.rotation.shape[:-2], 4, 4, dtype=enc.rotation.dtype, device=enc.rotation.device)
-        x[..., :3, :3] = enc.rotation
-        if enc.translation is not None:
-            x[..., :3, 3] = enc.translation
-        x[..., 3, 3] = 1.0
-        return x
+        R = enc.rotation
+        t = enc.translation if enc.translation is not None else R.new_zeros(*R.shape[:-2], 3)
+        return make_pose(R, t)
 
     def pack(self, enc: Encoding) -> Tensor:
         """The condition tensor of an encoding: the feature, or ``[feature | anchor entries]``."""
@@ -269,8 +271,7 @@ class PoseDiffusionModule(L.LightningModule):
         else:
             loss = symmetric_rotation_loss(batch, enc.rotation)
         if enc.translation is not None and pose.shape[-1] == 4:
-            w = float(getattr(self, "translation_weight", 1.0))
-            loss = loss + w * (enc.translation - pose[:, :3, 3]).square().sum(-1)
+            loss = loss + self.translation_weight * (enc.translation - pose[:, :3, 3]).square().sum(-1)
         return loss
 
     def _probe_gradients(self, out: Tensor, noisy: Any) -> None:

@@ -111,3 +111,13 @@ def test_bad_configuration_is_one_line() -> None:
         PoseEncoder(image_size=64, crop_size=32, crop_jitter=(0.1, 0.1))
     with pytest.raises(ValueError, match="built for 64"):
         PoseEncoder(image_size=64, out_dim=8)(torch.rand(1, 3, 32, 32))
+
+
+def test_torchvision_trunk_names_match_every_arch() -> None:
+    import torchvision
+
+    from posediff.nn.pose_encoder import _TORCHVISION_TRUNK
+
+    for arch in ("resnet18", "resnet34", "resnet50"):
+        names = tuple(n for n, _ in getattr(torchvision.models, arch)().named_children())
+        assert names[:-2] == _TORCHVISION_TRUNK

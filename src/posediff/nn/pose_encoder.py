@@ -42,6 +42,8 @@ from .encoder import ResNetEncoder
 
 #: the rotation heads: a 6-D rotation (Gram–Schmidt), or symmetry-invariant embeddings per shape
 ROTATION_HEADS = ("6d", "invariant")
+#: the children of a torchvision ResNet that form the trunk (all but avgpool and fc), in order
+_TORCHVISION_TRUNK = ("conv1", "bn1", "relu", "maxpool", "layer1", "layer2", "layer3", "layer4")
 
 __all__ = ["Encoding", "PoseEncoder", "ray_rotation", "rotation_from_6d"]
 
@@ -272,7 +274,8 @@ class PoseEncoder(nn.Module):
         if any(k.startswith("encoder.") for k in state):
             state = {k[len("encoder.") :]: v for k, v in state.items() if k.startswith("encoder.")}
         if not any(k.startswith("trunk.") for k in state):  # torchvision: conv1, bn1, layer1, ... (no fc)
-            names = [n for n, _ in __import__("torchvision").models.resnet18().named_children()][:-2]
+            # the trunk is the net's children but avgpool and fc, as ResNetEncoder builds it
+            names = [*_TORCHVISION_TRUNK]
             state = {
                 f"trunk.{names.index(k.split('.')[0])}.{k.split('.', 1)[1]}": v
                 for k, v in state.items()
