@@ -2,8 +2,10 @@
 
 ``posediff fit`` stores the resolved run configuration in every Lightning checkpoint (key
 ``posediff_config``). :func:`load_checkpoint` reads the file with ``torch.load(weights_only=True)``
-(tensors and plain containers only — no pickled code runs), rebuilds the module from the stored
-config with Hydra's ``instantiate`` and loads the weights. With the authors' EMA on
+(tensors and plain containers only — no pickled code runs), checks the stored config against
+posediff's allow-list (:mod:`posediff.allowlist`: only posediff's own classes, no interpolations —
+a tampered file is refused in one line before anything in it is imported, resolved or called),
+rebuilds the module from it with Hydra's ``instantiate`` and loads the weights. With the authors' EMA on
 (``ema=authors``), Lightning's ``EMAWeightAveraging`` puts the averaged weights in ``state_dict``,
 so evaluation uses the EMA weights.
 
@@ -42,14 +44,28 @@ def read_checkpoint(path: str | os.PathLike[str], map_location: Any = "cpu") -> 
         raise CheckpointError(
             f"{p} is not a posediff checkpoint (no stored run config; made by posediff fit?)"
         )
+    from .allowlist import UntrustedConfigError, check_config
+
+    try:
+        check_config(ckpt[CONFIG_KEY], where=f"checkpoint {p}")
+    except UntrustedConfigError as e:
+        raise CheckpointError(str(e)) from None
     return ckpt
 
 
 def checkpoint_group(config: dict[str, Any]) -> str:
-    """The group name a stored config trains on (from ``group._target_``)."""
-    from hydra.utils import get_class
+    """The group name a stored config trains on (from ``group._target_``, an allowed class; no
+    module is imported on a file's word)."""
+    from .allowlist import UntrustedConfigError, target_class
+    from .lie import LieGroup
 
-    return str(get_class(config["group"]["_target_"]).name)
+    try:
+        cls = target_class(config.get("group") or {}, where="stored config group")
+    except UntrustedConfigError as e:
+        raise CheckpointError(str(e)) from None
+    if not (isinstance(cls, type) and issubclass(cls, LieGroup)):
+        raise CheckpointError(f"stored config: group._target_ names {cls.__name__}, not a LieGroup")
+    return str(cls.name)
 
 
 def checkpoint_shapes(config: dict[str, Any]) -> list[str]:
@@ -88,8 +104,17 @@ def module_from_checkpoint(ckpt: dict[str, Any], path: str | os.PathLike[str] = 
     from .config import register_resolvers
     from .module import PoseDiffusionModule
 
+    from .allowlist import UntrustedConfigError, check_config, target_class
+
     register_resolvers()
     config = ckpt[CONFIG_KEY]
+    try:  # again here: a caller may hand in a dict it did not get from read_checkpoint
+        check_config(config, where=f"checkpoint {path}")
+        cls = target_class(config.get("module") or {}, where=f"checkpoint {path}: module")
+    except UntrustedConfigError as e:
+        raise CheckpointError(str(e)) from None
+    if not (isinstance(cls, type) and issubclass(cls, PoseDiffusionModule)):
+        raise CheckpointError(f"{path}: its module config names {cls.__name__}, not a PoseDiffusionModule")
     module_cfg = OmegaConf.create(config["module"])
     if module_cfg.get("encoder") is not None and "weights" in module_cfg.encoder:
         module_cfg.encoder.weights = None  # the checkpoint holds the trained weights; no file needed
