@@ -101,10 +101,9 @@ def module_from_checkpoint(ckpt: dict[str, Any], path: str | os.PathLike[str] = 
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
+    from .allowlist import UntrustedConfigError, check_config, target_class
     from .config import register_resolvers
     from .module import PoseDiffusionModule
-
-    from .allowlist import UntrustedConfigError, check_config, target_class
 
     register_resolvers()
     config = ckpt[CONFIG_KEY]
