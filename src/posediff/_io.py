@@ -1,4 +1,6 @@
-"""Atomic file writes: write to a temporary name in the same folder, then rename (no half-written files)."""
+"""Safe output: atomic file writes (a temporary name in the same folder, then rename — no half-written
+files), and output folders that posediff replaces or deletes only when it made them itself (a
+:data:`MARKER` file inside; ``.``, ``..``, ``/``, the home and working folders are always refused)."""
 
 import json
 import os
@@ -37,3 +39,103 @@ def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
 def atomic_write_json(path: str | os.PathLike[str], data: Any) -> Path:
     """``json.dump`` ``data`` (indented, NaN allowed) to ``path`` atomically."""
     return atomic_write_text(path, json.dumps(data, indent=2, sort_keys=False) + "\n")
+
+
+# --------------------------------------------------------------------------------------------------
+# Output folders: posediff deletes or replaces only what it made itself
+# --------------------------------------------------------------------------------------------------
+
+#: The file posediff puts in every folder it makes and may later replace (``demo``, ``data make-bop``).
+MARKER = ".posediff-output"
+
+
+class OutputFolderError(ValueError):
+    """An output folder posediff must not write, replace or delete (one-line message)."""
+
+
+def _protected(path: Path) -> str | None:
+    """Why ``path`` (resolved) may never be an output folder that gets replaced, or ``None``."""
+    here, home = Path.cwd().resolve(), Path.home().resolve()
+    if path == Path(path.anchor):
+        return "the file-system root"
+    if path == home or home.is_relative_to(path):
+        return "your home folder" if path == home else "a folder that holds your home folder"
+    if path == here or here.is_relative_to(path):
+        return "the working folder" if path == here else "a folder that holds the working folder"
+    return None
+
+
+def check_output_dir(path: str | os.PathLike[str], command: str, *, replace: bool = True) -> Path:
+    """Refuse (:class:`OutputFolderError`, one line) an output folder ``command`` cannot safely use:
+    ``.``, ``..``, ``/``, the home or working folder (or one holding them), a path under a file, an
+    existing file, a folder that cannot be written, or — when the run will ``replace`` it — an existing,
+    non-empty folder without posediff's :data:`MARKER` (something posediff did not make)."""
+    p = Path(path).expanduser()
+    resolved = p.resolve()
+    why = _protected(resolved)
+    if why is not None:
+        raise OutputFolderError(f"out={path} is {why}; give a new folder for the outputs")
+    if p.exists() and not p.is_dir():
+        raise OutputFolderError(f"out={path} is a file, not a folder; give a folder path")
+    parent = resolved
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise OutputFolderError(f"out={path} lies under {parent}, which is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputFolderError(f"cannot write in {parent} (permission denied); choose another out=")
+    if replace and p.is_dir() and any(p.iterdir()) and not (p / MARKER).is_file():
+        raise OutputFolderError(
+            f"out={path} exists and was not made by posediff (no {MARKER} in it); "
+            "it is left alone — choose a new out= or move that folder yourself"
+        )
+    return p
+
+
+def make_output_dir(path: str | os.PathLike[str], command: str) -> Path:
+    """Create ``path`` (parents too) and put posediff's :data:`MARKER` in it."""
+    p = Path(path)
+    p.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(p / MARKER, {"made_by": command})
+    return p
+
+
+def remove_own_dir(path: str | os.PathLike[str], command: str) -> None:
+    """Delete ``path`` if posediff made it (it holds :data:`MARKER`) or it is an empty folder; refuse
+    (:class:`OutputFolderError`) anything else. A missing ``path`` is fine."""
+    import shutil
+
+    p = Path(path)
+    if not p.exists():
+        return
+    if not p.is_dir():
+        raise OutputFolderError(f"{p} is a file where posediff puts a folder; move it away")
+    if (p / MARKER).is_file() and _protected(p.resolve()) is None:
+        shutil.rmtree(p)
+    elif not any(p.iterdir()):
+        p.rmdir()
+    else:
+        raise OutputFolderError(
+            f"{p} exists and was not made by posediff (no {MARKER} in it); "
+            "it is left alone — choose a new out= or move that folder yourself"
+        )
+
+
+def replace_dir(partial: str | os.PathLike[str], out: str | os.PathLike[str], command: str) -> Path:
+    """Rename the finished ``partial`` folder to ``out``; an existing ``out`` must be posediff's own
+    (checked first, moved aside, deleted only once the new one is in place)."""
+    partial, out = Path(partial), Path(out)
+    check_output_dir(out, command)
+    aside = None
+    if out.exists():
+        aside = out.with_name(f".{out.name}.replaced-{os.getpid()}")
+        out.rename(aside)
+    partial.rename(out)
+    if aside is not None:
+        import shutil
+
+        if (aside / MARKER).is_file():
+            shutil.rmtree(aside)
+        else:  # an empty folder
+            aside.rmdir()
+    return out

@@ -194,10 +194,12 @@ def _demo(args: list[str]) -> int:
     Renders the ``cpu``-preset SYMSOL-T at 128 px (skipped when already there), trains and evaluates
     ``+experiment=quickstart`` (before and after), and predicts one test image each of a
     tetrahedron, a cube and a cylinder. Everything lands in ``out`` (default ``outputs/demo``),
-    which is replaced only when the whole run succeeded.
+    which is replaced only when the whole run succeeded, and only if an earlier demo made it (its
+    ``.posediff-output`` marker; anything else is refused up front, ``posediff._io``).
     """
-    import shutil
     import time
+
+    from ._io import OutputFolderError, check_output_dir, make_output_dir, remove_own_dir, replace_dir
 
     out = Path("outputs/demo")
     fit_overrides = []
@@ -206,8 +208,14 @@ def _demo(args: list[str]) -> int:
             out = Path(a.split("=", 1)[1])
         else:
             fit_overrides.append(a)
-    partial = out.with_name(out.name + ".partial")
-    shutil.rmtree(partial, ignore_errors=True)
+    try:  # before any work: a folder posediff did not make is never replaced or deleted
+        check_output_dir(out, "posediff demo")
+        partial = out.with_name(out.name + ".partial")
+        remove_own_dir(partial, "posediff demo")
+        make_output_dir(partial, "posediff demo")
+    except OutputFolderError as e:
+        print(f"posediff demo: {e}", file=sys.stderr)
+        return 2
     start = time.perf_counter()
     data_root = "data/symsolt_uniform_cpu128"  # the cpu preset at 128 px (quickstart crops 64 px from it)
     for split in ("train", "test"):
@@ -238,8 +246,11 @@ def _demo(args: list[str]) -> int:
         )  # fmt: skip
         if code:
             return code
-    shutil.rmtree(out, ignore_errors=True)
-    partial.rename(out)
+    try:
+        replace_dir(partial, out, "posediff demo")
+    except OutputFolderError as e:
+        print(f"posediff demo: {e} (the finished run is in {partial})", file=sys.stderr)
+        return 2
     minutes = (time.perf_counter() - start) / 60
     summary = (out / "fit" / "metrics.md").read_text().split("## untrained model")[0]
     print(f"\n{summary.strip()}\n")

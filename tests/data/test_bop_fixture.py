@@ -101,7 +101,14 @@ def _sym_matrices(info: dict) -> list[np.ndarray]:
 def test_layout_and_json_keys(made) -> None:  # noqa: ANN001
     root, summary = made
     top = {p.name for p in root.iterdir()}
-    assert top == {"camera_primesense.json", "models", "models_eval", *SPLITS, "test_targets_bop19.json"}
+    assert top == {
+        "camera_primesense.json",
+        "models",
+        "models_eval",
+        *SPLITS,
+        "test_targets_bop19.json",
+        ".posediff-output",
+    }
     assert not root.with_name(root.name + ".partial").exists()
     cam = _json(root / "camera_primesense.json")
     assert set(cam) == {"cx", "cy", "depth_scale", "fx", "fy", "height", "width"}

@@ -41,7 +41,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,6 +48,7 @@ from typing import Any
 
 import numpy as np
 
+from ..._io import check_output_dir, make_output_dir, remove_own_dir, replace_dir
 from .render import VISIB_TOLERANCE_MM, BopRenderer, RenderedScene
 
 #: T-LESS primesense camera (720 x 540); :func:`camera` scales it to the fixture's image size.
@@ -631,7 +631,8 @@ def make_bop_fixture(
     ``train_views`` views of each object alone (train_primesense); ``test_scenes`` x
     ``test_images`` images of ``test_instances`` objects on a table (test_primesense). The same
     ``seed`` gives the same files. An existing ``out`` is refused (:class:`FixtureExistsError`)
-    unless ``overwrite``. ``progress`` prints one line per scene.
+    unless ``overwrite``, and even then only when make-bop made it (its ``.posediff-output`` marker;
+    ``posediff._io.check_output_dir``). ``progress`` prints one line per scene.
     """
     start = time.perf_counter()
     out = Path(out)
@@ -652,9 +653,11 @@ def make_bop_fixture(
             raise ValueError(f"{key} must be a whole number >= {least.get(key, 0)}, got {value}")
     if out.exists() and not overwrite:
         raise FixtureExistsError(f"{out} already exists; choose another out= or pass overwrite=true")
+    command = "posediff data make-bop"
+    check_output_dir(out, command, replace=overwrite)  # overwrite: only a folder make-bop made itself
     partial = out.with_name(out.name + ".partial")
-    shutil.rmtree(partial, ignore_errors=True)
-    partial.mkdir(parents=True)
+    remove_own_dir(partial, command)
+    make_output_dir(partial, command)
     for split in SPLITS:  # present even when a split is sized to nothing
         (partial / split).mkdir()
 
@@ -706,14 +709,12 @@ def make_bop_fixture(
         summary.target_instances = sum(t["inst_count"] for t in targets)
         summary.min_test_visib_fract = min_visib
     except BaseException:
-        shutil.rmtree(partial, ignore_errors=True)
+        remove_own_dir(partial, command)
         raise
     finally:
         if renderer is not None:
             renderer.close()
-    if out.exists():
-        shutil.rmtree(out)
-    partial.rename(out)
+    replace_dir(partial, out, command)
     summary.seconds = time.perf_counter() - start
     return summary
 
