@@ -128,8 +128,11 @@ def test_eval_refusals(trained: Path, tmp_path: Path, capsys: pytest.CaptureFixt
     cases = [
         (["group=so3"], "trained on group 'se3', not 'so3'"),
         (["+data.shapes=[icosa]"], "cannot evaluate ['icosa']"),
-        (["sampler.num_steps=0"], "sampler.num_steps must be ≥ 1"),
-        (["sampler.num_steps=500"], "num_steps must be in [1, 100] for this schedule, got 500"),
+        (["sampler.num_steps=0"], "sampler.num_steps must be a whole number in [1, 100]"),
+        (
+            ["sampler.num_steps=500"],
+            "sampler.num_steps must be a whole number in [1, 100] (the schedule's levels), got 500",
+        ),
         (["sampler=nope"], "unknown sampler 'nope'; available: ancestral, few_step, random_walk"),
         ([f"ckpt_path={tmp_path / 'none.ckpt'}"], "not found"),
     ]
@@ -187,7 +190,7 @@ def test_predict_test_sample_with_trajectory(trained: Path, tmp_path: Path) -> N
         (["image={notimage}"], "is not an image"),
         ([], "give exactly one of image=PATH"),
         (["index=999"], "index=999 but the test data has 4 samples"),
-        (["image={notimage}", "num_samples=0"], "num_samples must be ≥ 1"),
+        (["image={notimage}", "num_samples=0"], "num_samples must be a whole number ≥ 1"),
     ],
 )
 def test_predict_bad_input(

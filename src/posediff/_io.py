@@ -65,28 +65,30 @@ def _protected(path: Path) -> str | None:
     return None
 
 
-def check_output_dir(path: str | os.PathLike[str], command: str, *, replace: bool = True) -> Path:
+def check_output_dir(
+    path: str | os.PathLike[str], command: str, *, replace: bool = True, key: str = "out"
+) -> Path:
     """Refuse (:class:`OutputFolderError`, one line) an output folder ``command`` cannot safely use:
-    ``.``, ``..``, ``/``, the home or working folder (or one holding them), a path under a file, an
-    existing file, a folder that cannot be written, or — when the run will ``replace`` it — an existing,
-    non-empty folder without posediff's :data:`MARKER` (something posediff did not make)."""
+    a path under a file, an existing file, a folder that cannot be written, and — when the run will
+    ``replace`` it — ``.``, ``..``, ``/``, the home or working folder (or one holding them) and any
+    existing, non-empty folder without posediff's :data:`MARKER` (something posediff did not make)."""
     p = Path(path).expanduser()
     resolved = p.resolve()
-    why = _protected(resolved)
+    why = _protected(resolved) if replace else None
     if why is not None:
-        raise OutputFolderError(f"out={path} is {why}; give a new folder for the outputs")
+        raise OutputFolderError(f"{key}={path} is {why}; give a new folder for the outputs")
     if p.exists() and not p.is_dir():
-        raise OutputFolderError(f"out={path} is a file, not a folder; give a folder path")
+        raise OutputFolderError(f"{key}={path} is a file, not a folder; give a folder path")
     parent = resolved
     while not parent.exists():
         parent = parent.parent
     if not parent.is_dir():
-        raise OutputFolderError(f"out={path} lies under {parent}, which is a file, not a folder")
+        raise OutputFolderError(f"{key}={path} lies under {parent}, which is a file, not a folder")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputFolderError(f"cannot write in {parent} (permission denied); choose another out=")
     if replace and p.is_dir() and any(p.iterdir()) and not (p / MARKER).is_file():
         raise OutputFolderError(
-            f"out={path} exists and was not made by posediff (no {MARKER} in it); "
+            f"{key}={path} exists and was not made by posediff (no {MARKER} in it); "
             "it is left alone — choose a new out= or move that folder yourself"
         )
     return p

@@ -35,6 +35,13 @@ def read_checkpoint(path: str | os.PathLike[str], map_location: Any = "cpu") -> 
     p = Path(path)
     if not p.is_file():
         raise CheckpointError(f"checkpoint {p} not found (posediff fit writes them to <run>/checkpoints/)")
+    import zipfile
+
+    if not zipfile.is_zipfile(p):
+        raise CheckpointError(
+            f"{p} is not a PyTorch checkpoint (not the zip archive torch.save writes; truncated or another "
+            "kind of file?); give a .ckpt written by posediff fit"
+        )
     try:
         ckpt = torch.load(p, map_location=map_location, weights_only=True, mmap=True)
     except Exception as e:  # noqa: BLE001 - any unreadable file gets the same one-line message

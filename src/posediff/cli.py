@@ -83,8 +83,8 @@ def usage() -> str:
     return "\n".join(lines)
 
 
-def _fail(message: str, code: int = 2) -> int:
-    print(f"posediff: {message}", file=sys.stderr)
+def _fail(message: str, code: int = 2, prefix: str = "posediff") -> int:
+    print(f"{prefix}: {message}", file=sys.stderr)
     return code
 
 
@@ -102,6 +102,45 @@ def _unknown_config_choice(args: Sequence[str], conf: Path) -> str | None:
         options = sorted(p.stem for p in folder.glob("*.yaml"))
         if value not in options:
             return f"unknown {key} {value!r}; available: {', '.join(options)}"
+    return None
+
+
+def input_error_line(e: BaseException) -> str | None:
+    """The one line of an input error posediff raised (a ``ValueError`` / ``OSError`` subclass defined
+    in posediff: checkpoints, data, outputs), also when Hydra or a DataLoader worker wrapped it;
+    ``None`` for anything else (a bug, shown with its traceback)."""
+    seen = 0
+    while e is not None and seen < 8:
+        cls = type(e)
+        if cls.__module__.startswith("posediff") and issubclass(cls, (ValueError, OSError)):
+            lines = [ln.strip() for ln in str(e).strip().splitlines() if ln.strip()]
+            if not lines:
+                return cls.__name__
+            if lines[0].startswith("Caught ") and len(lines) > 1:  # re-raised from a DataLoader worker
+                last = lines[-1]
+                return last.split(": ", 1)[1] if last.startswith(cls.__name__ + ":") else last
+            return lines[0]
+        e, seen = e.__cause__ or e.__context__, seen + 1
+    return None
+
+
+def _run_dir_problem(args: Sequence[str]) -> str | None:
+    """Why the Hydra run / sweep folder of ``args`` cannot be written (a file in its path, no
+    permission), checked before Hydra creates it; ``None`` when it can."""
+    from ._io import OutputFolderError, check_output_dir
+
+    multirun = any(a in ("-m", "--multirun") for a in args)
+    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    folder = "multirun" if multirun else "outputs"
+    for a in args:
+        if a.startswith(key + "="):
+            folder = a.split("=", 1)[1]
+    if "${" in folder:
+        return None  # an interpolation: Hydra resolves it
+    try:
+        check_output_dir(folder, "run", replace=False, key=key)
+    except OutputFolderError as e:
+        return str(e)
     return None
 
 
@@ -132,10 +171,27 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
     problem = _unknown_config_choice(args, conf)
     if problem:
         return _fail(problem)
+    problem = _run_dir_problem(args)
+    if problem:
+        return _fail(problem, prefix=f"posediff {name}")
     result: dict[str, int] = {}
 
     def _main(cfg: DictConfig) -> None:
-        result["code"] = task(cfg)
+        from omegaconf.errors import MissingMandatoryValue
+
+        try:
+            result["code"] = task(cfg)
+        except MissingMandatoryValue as e:
+            key = e.full_key or "a key"
+            result["code"] = _fail(
+                f"{key} is required ({key}=...; posediff {name} --help lists the options)",
+                prefix=f"posediff {name}",
+            )
+        except Exception as e:  # noqa: BLE001 - posediff's own input errors become one line; others propagate
+            message = input_error_line(e)
+            if message is None:
+                raise
+            result["code"] = _fail(message, prefix=f"posediff {name}")
 
     # argparse cannot take overrides on both sides of a flag: `posediff eval a=1 -m b=1,2` is
     # documented usage, so Hydra's -m/--multirun goes first
@@ -153,6 +209,16 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """``posediff <command> ...``: the exit code (0 ok, 2 bad input, 130 interrupted)."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        print("posediff: interrupted (Ctrl-C); files already written are complete, nothing is half-written",
+              file=sys.stderr)  # fmt: skip
+        return 130
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     if not args or args[0] in ("-h", "--help", "help"):
         print(usage())

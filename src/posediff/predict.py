@@ -33,25 +33,61 @@ from torch import Tensor
 from ._io import atomic_write_bytes, atomic_write_text
 from .viz import save_figure
 
+#: The most pixels :func:`load_image` decodes (a decompression-bomb guard; PIL's own limit is 4× more).
+MAX_IMAGE_PIXELS = 50_000_000
+
+
+class ImageError(ValueError):
+    """An image file that cannot be a model's input (unreadable, truncated, too large, odd pixels)."""
+
 
 def load_image(path: str | os.PathLike[str], size: int) -> Tensor:
-    """An RGB image file as ``(3, size, size)`` float in [0, 1] (resized with bilinear filtering
-    when its side differs; a non-square image is an error)."""
+    """An image file as ``(3, size, size)`` float RGB in [0, 1] (resized with bilinear filtering when
+    its side differs; a non-square image is an error).
+
+    8-bit RGB / grey / palette images and 16-bit grey (``I;16``, scaled by 65535 — converting it the
+    usual way would clip it to white) are read; alpha is dropped. Truncated files, images over
+    :data:`MAX_IMAGE_PIXELS` (checked from the header, before decoding) and 32-bit integer or float
+    pixels are refused with one line (:class:`ImageError`).
+    """
+    import warnings
+
     from PIL import Image, UnidentifiedImageError
 
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"image {p} not found")
     try:
-        with Image.open(p) as im:
-            im = im.convert("RGB")
-            if im.width != im.height:
-                raise ValueError(f"image {p} is {im.width}×{im.height}; give a square crop ({size}×{size})")
-            if im.width != size:
-                im = im.resize((size, size), Image.BILINEAR)
-            arr = np.asarray(im, dtype=np.float32) / 255.0
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            with Image.open(p) as im:
+                w, h = im.size
+                if w * h > MAX_IMAGE_PIXELS:
+                    raise ImageError(
+                        f"image {p} is {w}×{h} ({w * h / 1e6:.0f} megapixels), over posediff's limit of "
+                        f"{MAX_IMAGE_PIXELS / 1e6:.0f} (a decompression-bomb guard); give a crop of the object"
+                    )
+                if w != h:
+                    raise ImageError(f"image {p} is {w}×{h}; give a square crop ({size}×{size})")
+                im.load()
+                if im.mode.startswith("I;16"):
+                    grey = np.asarray(im, dtype=np.float32) / 65535.0
+                    im = Image.fromarray(np.round(grey * 255.0).astype(np.uint8), mode="L")
+                elif im.mode in ("I", "F"):
+                    raise ImageError(
+                        f"image {p} has 32-bit {'integer' if im.mode == 'I' else 'float'} pixels; give an "
+                        "8-bit (or 16-bit grey) RGB / grey image"
+                    )
+                im = im.convert("RGB")
+                if im.width != size:
+                    im = im.resize((size, size), Image.BILINEAR)
+                arr = np.asarray(im, dtype=np.float32) / 255.0
     except UnidentifiedImageError as e:
-        raise ValueError(f"{p} is not an image PIL can read") from e
+        raise ImageError(f"{p} is not an image PIL can read") from e
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as e:
+        raise ImageError(f"image {p} is too large to decode safely ({e}); give a crop of the object") from e
+    except OSError as e:  # truncated or corrupt data
+        raise ImageError(f"image {p} is truncated or corrupt ({e}); save it again") from e
     return torch.from_numpy(arr.transpose(2, 0, 1).copy())
 
 

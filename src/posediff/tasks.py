@@ -151,18 +151,24 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
         return 2
     if not isinstance(module, PoseDiffusionModule):
         raise TypeError(f"module config builds {type(module).__name__}, not a PoseDiffusionModule")
+    try:  # every option checked now, not after hours of training
+        eval_samplers = _check_fit_options(cfg, module)
+    except ValueError as e:
+        print(f"posediff fit: {_data_error(e) or e}", file=sys.stderr)
+        return 2
     module.config = OmegaConf.to_container(cfg, resolve=True)
     if cfg.ckpt_path is not None:
         from .checkpoint import CheckpointError, check_compatible, read_checkpoint
 
         try:
-            stored = read_checkpoint(cfg.ckpt_path)["posediff_config"]
+            stored_ckpt = read_checkpoint(cfg.ckpt_path)
             check_compatible(
-                stored,
+                stored_ckpt["posediff_config"],
                 group=module.group.name,
                 shapes=list(getattr(datamodule, "shapes", [])) or None,
                 where=f"checkpoint {cfg.ckpt_path}",
             )
+            _check_same_architecture(stored_ckpt["state_dict"], module, cfg.ckpt_path)
         except CheckpointError as e:
             print(f"posediff fit: cannot resume: {e}", file=sys.stderr)
             return 2
@@ -192,7 +198,14 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
         results["before"].pop("estimates", None)
         print(f"before training: {_headline(results['before'])}")
     start = time.perf_counter()
-    trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
+    try:
+        trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
+    except SystemExit:  # Lightning exits after a graceful Ctrl-C; report it as the interrupt it was
+        if trainer.interrupted:
+            print(f"posediff fit: stopped; resume with ckpt_path={out_dir / 'checkpoints' / 'last.ckpt'}",
+                  file=sys.stderr)  # fmt: skip
+            raise KeyboardInterrupt from None
+        raise
     if not trainer.is_global_zero:
         return 0
     losses = module.loss_history
@@ -202,10 +215,8 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
         "loss_first": _mean(losses[:50]),
         "loss_last": _mean(losses[-50:]),
     }
-    samplers = cfg.eval.samplers or {"default": None}
     results["after"] = {}
-    for name, sampler_cfg in samplers.items():
-        sampler = instantiate(sampler_cfg)(module.diffusion) if sampler_cfg is not None else None
+    for name, sampler in eval_samplers.items():
         results["after"][name] = {}
         for steps in cfg.eval.num_steps:
             res = _evaluate(
@@ -231,6 +242,52 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
             f"encoder weights: {_save_encoder(module, encoder_out, cfg, results)} (use: encoder.weights=<that file>)"
         )
     return 0
+
+
+def _whole(value: Any, key: str, least: int = 1, most: int | None = None, *, allow: tuple = ()) -> int:
+    """``value`` as an int in ``[least, most]`` (or one of ``allow``), else a one-line ``ValueError`` naming ``key``."""
+    if value in allow and not isinstance(value, bool):
+        return value
+    ok = isinstance(value, int) and not isinstance(value, bool)
+    if not ok or value < least or (most is not None and value > most):
+        span = f"[{least}, {most}]" if most is not None else f"≥ {least}"
+        extra = f" (or {', '.join(map(str, allow))})" if allow else ""
+        raise ValueError(f"{key} must be a whole number {span}{extra}, got {value!r}")
+    return int(value)
+
+
+def _check_fit_options(cfg: DictConfig, module: Any) -> dict[str, Any]:
+    """Refuse bad numeric options before training (one line naming the key); the evaluation
+    samplers by name (``None``: the module's own), built now so a bad one fails before training."""
+    levels = module.diffusion.schedule.num_levels
+    _whole(cfg.eval.num_samples, "eval.num_samples")
+    steps = list(cfg.eval.num_steps) if cfg.eval.num_steps is not None else []
+    if not steps:
+        raise ValueError("eval.num_steps is empty; give step counts, e.g. eval.num_steps=[100]")
+    for s in steps:
+        _whole(s, "eval.num_steps", 1, levels)
+    _whole(cfg.trainer.get("max_steps", -1), "trainer.max_steps", allow=(-1,))
+    samplers: dict[str, Any] = {}
+    for name, sampler_cfg in (cfg.eval.samplers or {"default": None}).items():
+        samplers[name] = instantiate(sampler_cfg)(module.diffusion) if sampler_cfg is not None else None
+    return samplers
+
+
+def _check_same_architecture(stored: dict[str, Any], module: Any, path: Any) -> None:
+    """Refuse (one line) resuming a checkpoint whose weights do not fit ``module``'s architecture."""
+    from .checkpoint import CheckpointError
+
+    have = module.state_dict()
+    for key in sorted(set(stored) | set(have)):
+        a, b = stored.get(key), have.get(key)
+        if a is None or b is None or tuple(a.shape) != tuple(b.shape):
+            there = "absent" if a is None else f"{tuple(a.shape)}"
+            here = "absent" if b is None else f"{tuple(b.shape)}"
+            raise CheckpointError(
+                f"checkpoint {path} was trained with another architecture ({key}: {there} in the "
+                f"checkpoint, {here} with this config); resume with the settings it was trained with "
+                "(posediff fit --cfg job shows yours) or start a new run"
+            )
 
 
 def _data_error(e: BaseException) -> str | None:
@@ -428,12 +485,7 @@ def _checkpoint_run(cfg: DictConfig) -> tuple[Any, DictConfig]:
     if sampler:
         s = OmegaConf.to_container(sampler, resolve=True)
         run.module.sampler = s if "_target_" in s else OmegaConf.merge(run.module.sampler, s)
-    steps = run.module.sampler.get("num_steps")
-    if steps is not None and int(steps) < 1:
-        raise ValueError(f"sampler.num_steps must be ≥ 1, got {steps}")
-    module.sampler = instantiate(run.module.sampler)(module.diffusion)
-    if steps is not None:
-        module.diffusion.schedule.timesteps(int(steps))  # > the trained levels: one-line ValueError
+    module.sampler = instantiate(run.module.sampler)(module.diffusion)  # bad num_steps: one-line ValueError
     return module, run
 
 
@@ -460,8 +512,9 @@ def evaluate_checkpoint(cfg: DictConfig) -> int:
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
-        if int(cfg.num_samples) < 1:
-            raise ValueError(f"num_samples must be ≥ 1, got {cfg.num_samples}")
+        _whole(cfg.num_samples, "num_samples")
+        if cfg.max_inputs is not None:
+            _whole(cfg.max_inputs, "max_inputs")
         device = _device(str(cfg.device))
         module, run = _checkpoint_run(cfg)
         datamodule = _data(run)
@@ -520,8 +573,12 @@ def predict(cfg: DictConfig) -> int:
     try:
         if (cfg.image is None) == (cfg.index is None):
             raise ValueError("give exactly one of image=PATH (an image file) or index=N (a test sample)")
-        if int(cfg.num_samples) < 1:
-            raise ValueError(f"num_samples must be ≥ 1, got {cfg.num_samples}")
+        _whole(cfg.num_samples, "num_samples")
+        if cfg.index is not None:
+            _whole(cfg.index, "index", 0)
+        _whole(cfg.top_modes, "top_modes", 0)
+        if not float(cfg.mode_radius_deg) > 0:
+            raise ValueError(f"mode_radius_deg must be > 0, got {cfg.mode_radius_deg}")
         device = _device(str(cfg.device))
         module, run = _checkpoint_run(cfg)
         if str(run.data.get("_target_", "")).startswith("posediff.data.bop"):

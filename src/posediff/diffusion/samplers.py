@@ -53,6 +53,14 @@ class Sampler(Registered, family=True):
 
     def __init__(self, diffusion: Diffusion, *, num_steps: int | None = None) -> None:
         self.diffusion = diffusion
+        if num_steps is not None:  # refused here, when built, not at the end of a training run
+            levels = diffusion.schedule.num_levels
+            if isinstance(num_steps, bool) or int(num_steps) != num_steps or not 1 <= num_steps <= levels:
+                raise ValueError(
+                    f"sampler.num_steps must be a whole number in [1, {levels}] (the schedule's levels), "
+                    f"got {num_steps}"
+                )
+            num_steps = int(num_steps)
         self.num_steps = num_steps
 
     def __repr__(self) -> str:
