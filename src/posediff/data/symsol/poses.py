@@ -14,6 +14,7 @@ never share poses for one seed, and the samples of all shapes are interleaved in
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -83,6 +84,23 @@ class PoseSet:
     def __len__(self) -> int:
         return int(self.shape_id.shape[0])
 
+    def digest(self, start: int = 0, stop: int | None = None) -> str:
+        """:func:`pose_digest` of the samples ``start:stop`` (all by default)."""
+        sl = slice(start, stop)
+        return pose_digest(self.shape_id[sl], self.R[sl], self.t[sl])
+
+
+def pose_digest(shape_id: np.ndarray, R: np.ndarray, t: np.ndarray) -> str:
+    """SHA-256 (hex) of the poses ``shape_id`` (n,), ``R`` (n, 3, 3), ``t`` (n, 3) as little-endian
+    int64 / float64 bytes, in order: what a shard records of the poses it was rendered from, and
+    what the reader recomputes from ``index.npz`` (equal arrays, equal digests)."""
+    h = hashlib.sha256()
+    for arr, dtype, shape in ((shape_id, "<i8", (-1,)), (R, "<f8", (-1, 3, 3)), (t, "<f8", (-1, 3))):
+        a = np.ascontiguousarray(np.asarray(arr).astype(dtype, copy=False).reshape(shape))
+        h.update(f"{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
 
 def sample_poses(
     dataset: str,
@@ -98,6 +116,10 @@ def sample_poses(
         raise ValueError(f"n_per_shape must be at least 1, got {n_per_shape}")
     if not shapes:
         raise ValueError(f"no shapes given; available: {', '.join(SHAPES)}")
+    names = [shape_name(s) for s in shapes]
+    twice = sorted({s for s in names if names.count(s) > 1})
+    if twice:
+        raise ValueError(f"shapes lists {', '.join(twice)} more than once; give each shape once")
     ids, Rs, ts = [], [], []
     for shape in shapes:
         sid = SHAPE_IDS[shape_name(shape)]
@@ -118,5 +140,6 @@ __all__ = [
     "check_spec",
     "default_variant",
     "haar_rotations",
+    "pose_digest",
     "sample_poses",
 ]

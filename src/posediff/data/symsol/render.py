@@ -33,6 +33,8 @@ FRUSTUM_HALF_WIDTH = 5.25
 FOV_DEG = 60.0
 #: Distance of the scene centre (translation 0 of SYMSOL-T) from the camera: 5.25 / tan 30°.
 SCENE_DISTANCE = FRUSTUM_HALF_WIDTH / math.tan(math.radians(FOV_DEG / 2.0))
+#: The smallest image side the renderer makes (pixels).
+MIN_IMAGE_SIZE = 8
 
 
 def intrinsics(image_size: int, fov_deg: float = FOV_DEG) -> np.ndarray:
@@ -76,13 +78,33 @@ class SymsolRenderer:
         ambient: float = 0.1,
         grey: float = 0.75,
     ) -> None:
-        if image_size < 8:
-            raise ValueError(f"image_size must be at least 8 px, got {image_size}")
+        if (
+            isinstance(image_size, bool)
+            or not isinstance(image_size, (int, np.integer))
+            or image_size < MIN_IMAGE_SIZE
+        ):
+            raise ValueError(
+                f"image_size must be an integer of at least {MIN_IMAGE_SIZE} (pixels), got {image_size!r}"
+            )
         self.image_size = int(image_size)
         self.fov_deg = float(fov_deg)
         self.K = intrinsics(self.image_size, self.fov_deg)
         self.key_light, self.fill_light, self.ambient, self.grey = key_light, fill_light, ambient, grey
         self._gl: Any = None  # (OffscreenRenderer, {shape: (scene, mesh node)})
+
+    def settings(self) -> dict[str, float | int | str]:
+        """What defines the images besides the poses: the camera and the shading (recorded in every
+        shard and in ``meta.json`` so a resumed render or a reader can tell renders apart)."""
+        return {
+            "image_size": self.image_size,
+            "fov_deg": self.fov_deg,
+            "key_light": float(self.key_light),
+            "fill_light": float(self.fill_light),
+            "ambient": float(self.ambient),
+            "grey": float(self.grey),
+            "material": "matte flat-shaded",
+            "scene_distance": SCENE_DISTANCE,
+        }
 
     # A live GL context cannot cross a process boundary: pickle without it, rebuild on first use.
     def __getstate__(self) -> dict[str, Any]:
@@ -163,6 +185,7 @@ class SymsolRenderer:
 __all__ = [
     "FOV_DEG",
     "FRUSTUM_HALF_WIDTH",
+    "MIN_IMAGE_SIZE",
     "SCENE_DISTANCE",
     "Rendered",
     "SymsolRenderer",
