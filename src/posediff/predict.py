@@ -41,14 +41,13 @@ class ImageError(ValueError):
     """An image file that cannot be a model's input (unreadable, truncated, too large, odd pixels)."""
 
 
-def load_image(path: str | os.PathLike[str], size: int) -> Tensor:
-    """An image file as ``(3, size, size)`` float RGB in [0, 1] (resized with bilinear filtering when
-    its side differs; a non-square image is an error).
+def read_image(path: str | os.PathLike[str]):  # noqa: ANN201 - PIL.Image.Image
+    """An image file, checked and decoded, as an RGB ``PIL.Image`` (square; any side).
 
     8-bit RGB / grey / palette images and 16-bit grey (``I;16``, scaled by 65535 — converting it the
     usual way would clip it to white) are read; alpha is dropped. Truncated files, images over
-    :data:`MAX_IMAGE_PIXELS` (checked from the header, before decoding) and 32-bit integer or float
-    pixels are refused with one line (:class:`ImageError`).
+    :data:`MAX_IMAGE_PIXELS` (checked from the header, before decoding), non-square images and
+    32-bit integer or float pixels are refused with one line (:class:`ImageError`).
     """
     import warnings
 
@@ -68,27 +67,39 @@ def load_image(path: str | os.PathLike[str], size: int) -> Tensor:
                         f"{MAX_IMAGE_PIXELS / 1e6:.0f} (a decompression-bomb guard); give a crop of the object"
                     )
                 if w != h:
-                    raise ImageError(f"image {p} is {w}×{h}; give a square crop ({size}×{size})")
+                    raise ImageError(f"image {p} is {w}×{h}; give a square crop of the object")
                 im.load()
                 if im.mode.startswith("I;16"):
                     grey = np.asarray(im, dtype=np.float32) / 65535.0
-                    im = Image.fromarray(np.round(grey * 255.0).astype(np.uint8), mode="L")
-                elif im.mode in ("I", "F"):
+                    return Image.fromarray(np.round(grey * 255.0).astype(np.uint8), mode="L").convert("RGB")
+                if im.mode in ("I", "F"):
                     raise ImageError(
                         f"image {p} has 32-bit {'integer' if im.mode == 'I' else 'float'} pixels; give an "
                         "8-bit (or 16-bit grey) RGB / grey image"
                     )
-                im = im.convert("RGB")
-                if im.width != size:
-                    im = im.resize((size, size), Image.BILINEAR)
-                arr = np.asarray(im, dtype=np.float32) / 255.0
+                return im.convert("RGB")
     except UnidentifiedImageError as e:
         raise ImageError(f"{p} is not an image PIL can read") from e
     except (Image.DecompressionBombError, Image.DecompressionBombWarning) as e:
         raise ImageError(f"image {p} is too large to decode safely ({e}); give a crop of the object") from e
     except OSError as e:  # truncated or corrupt data
         raise ImageError(f"image {p} is truncated or corrupt ({e}); save it again") from e
+
+
+def image_tensor(image, size: int) -> Tensor:  # noqa: ANN001 - PIL.Image.Image
+    """An RGB ``PIL.Image`` as ``(3, size, size)`` float in [0, 1] (bilinear resize when its side differs)."""
+    from PIL import Image
+
+    if image.width != size:
+        image = image.resize((size, size), Image.BILINEAR)
+    arr = np.asarray(image, dtype=np.float32) / 255.0
     return torch.from_numpy(arr.transpose(2, 0, 1).copy())
+
+
+def load_image(path: str | os.PathLike[str], size: int) -> Tensor:
+    """An image file as ``(3, size, size)`` float RGB in [0, 1]: :func:`read_image` (checks, one-line
+    :class:`ImageError`), then :func:`image_tensor`."""
+    return image_tensor(read_image(path), size)
 
 
 @dataclass
@@ -375,7 +386,11 @@ __all__ = [
     "figure_so3",
     "figure_trajectory",
     "figure_translations",
+    "MAX_IMAGE_PIXELS",
+    "ImageError",
+    "image_tensor",
     "load_image",
+    "read_image",
     "overlay",
     "predict",
     "save_prediction",

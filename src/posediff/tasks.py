@@ -567,7 +567,7 @@ def report(cfg: DictConfig) -> int:
 def predict(cfg: DictConfig) -> int:
     """``posediff predict``: hypotheses, modes, ``poses.npz`` / ``poses.json`` and the plots for one image."""
     from .checkpoint import CheckpointError
-    from .predict import load_image, predict, save_prediction
+    from .predict import image_tensor, predict, read_image, save_prediction
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
@@ -580,6 +580,7 @@ def predict(cfg: DictConfig) -> int:
         if not float(cfg.mode_radius_deg) > 0:
             raise ValueError(f"mode_radius_deg must be > 0, got {cfg.mode_radius_deg}")
         device = _device(str(cfg.device))
+        picture = read_image(str(cfg.image)) if cfg.image is not None else None  # checked before the model
         module, run = _checkpoint_run(cfg)
         if str(run.data.get("_target_", "")).startswith("posediff.data.bop"):
             if cfg.index is None:
@@ -602,7 +603,7 @@ def predict(cfg: DictConfig) -> int:
 
             shape = SHAPES[int(sample["shape"])]
         else:
-            image = load_image(str(cfg.image), size)
+            image = image_tensor(picture, size)
         if shape is not None:
             from .data.symsol import shape_name
 

@@ -1,0 +1,394 @@
+"""Bad input through the real CLI: each case runs ``posediff ...`` in a subprocess and must get one line
+on stderr (``posediff <command>: ...``), a non-zero exit (2 for bad input, 130 for Ctrl-C), no
+traceback, and leave every file that existed before untouched.
+
+The table is the README's reliability section. The subprocesses run two at a time (each starts
+torch and Lightning, a few seconds); the shared inputs — a two-step toy checkpoint, a tiny BOP
+fixture, a tiny SYMSOL-T render — are made in-process once.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from posediff.cli import main
+
+POSEDIFF = [sys.executable, "-m", "posediff.cli"]
+
+TOY = ["+experiment=toy_so3", "trainer.max_steps=2", "trainer.val_check_interval=2",
+       "trainer.enable_progress_bar=false", "data.num_train=64", "data.batch_size=8",
+       "data.num_test_per_shape=1", "module.num_noisy=4", "denoiser.hidden_dim=16", "eval.before=false",
+       "eval.num_samples=2", "eval.num_steps=[2]", "eval.samplers=null"]  # fmt: skip
+BOP = ["+experiment=tless_se3", "encoder.arch=resnet18", "encoder.out_dim=16", "denoiser.hidden_dim=16",
+       "data.image_size=32", "data.batch_size=2", "data.num_workers=0", "module.num_noisy=4",
+       "trainer.precision=32-true", "trainer.enable_progress_bar=false", "trainer.max_steps=1",
+       "eval.before=false", "eval.num_steps=[2]", "eval.num_samples=1"]  # fmt: skip
+SYMSOL = ["+experiment=quickstart", "data.image_size=32", "data.shapes=[tet,cube]", "data.batch_size=2",
+          "data.n_per_shape_test=1", "module.num_noisy=4", "denoiser.hidden_dim=16", "encoder.out_dim=16",
+          "encoder.crop_size=null", "trainer.max_steps=2", "trainer.enable_progress_bar=false",
+          "eval.before=false", "eval.num_samples=1", "eval.num_steps=[2]"]  # fmt: skip
+RENDER = ["data", "render", "dataset=symsolt", "image_size=32", "n_per_shape=2", "shapes=[tet,cube]",
+          "shard_size=2", "progress=false"]  # fmt: skip
+
+
+@dataclass
+class Env:
+    """The shared inputs (made once) and the case's own folder."""
+
+    ckpt: Path
+    bop: Path
+    symsol: Path
+    dir: Path = field(default_factory=Path)
+
+    def copy_of(self, src: Path, name: str) -> Path:
+        dst = self.dir / name
+        shutil.copytree(src, dst)
+        return dst
+
+
+@dataclass
+class Case:
+    id: str
+    gets: str  # what the user gets (the README table's right column)
+    args: Callable[[Env], list[str]]
+    message: str  # a part of the one line
+    code: int = 2
+    interrupt: Callable[[Env], bool] | None = None  # send SIGINT once this holds
+    after: Callable[[Env], None] | None = None  # extra checks on the case folder
+
+
+def _tampered(env: Env) -> Path:
+    ckpt = torch.load(env.ckpt, weights_only=True)
+    cfg = copy.deepcopy(ckpt["posediff_config"])
+    sentinel = env.dir / "precious.txt"
+    cfg["data"]["seed"] = {"_target_": "builtins.min", "_args_": [[0, {"_target_": "builtins.open",
+                           "_args_": [str(sentinel), "w"]}]]}  # fmt: skip
+    ckpt["posediff_config"] = cfg
+    torch.save(ckpt, env.dir / "tampered.ckpt")
+    return env.dir / "tampered.ckpt"
+
+
+def _write(env: Env, name: str, data: bytes) -> Path:
+    (env.dir / name).write_bytes(data)
+    return env.dir / name
+
+
+def _png(env: Env, name: str, array: np.ndarray, mode: str | None = None) -> Path:
+    from PIL import Image
+
+    Image.fromarray(array, mode=mode).save(env.dir / name)
+    return env.dir / name
+
+
+def _truncated_png(env: Env) -> Path:
+    p = _png(env, "full.png", (np.random.default_rng(0).random((64, 64, 3)) * 255).astype(np.uint8))
+    return _write(env, "truncated.png", p.read_bytes()[:300])
+
+
+def _bomb(env: Env) -> Path:
+    from PIL import Image
+
+    Image.new("1", (8000, 8000)).save(env.dir / "bomb.png")  # 64 megapixels in a few kB
+    return env.dir / "bomb.png"
+
+
+def _bop_without(env: Env, pattern: str) -> Path:
+    root = env.copy_of(env.bop, "bop")
+    victim = sorted(root.glob(pattern))[0]
+    victim.unlink()
+    return root
+
+
+def _bop_resized_test_image(env: Env) -> Path:
+    from PIL import Image
+
+    root = env.copy_of(env.bop, "bop")
+    victim = sorted(root.glob("test_primesense/*/rgb/*.png"))[0]
+    Image.open(victim).resize((50, 40)).save(victim)
+    return root
+
+
+def _bop_without_diameter(env: Env) -> Path:
+    import json
+
+    root = env.copy_of(env.bop, "bop")
+    info_path = root / "models_eval" / "models_info.json"
+    info = json.loads(info_path.read_text())
+    del info["2"]["diameter"]
+    info_path.write_text(json.dumps(info))
+    return root
+
+
+def _symsol_corrupt_shard(env: Env) -> Path:
+    root = env.copy_of(env.symsol, "symsol")
+    victim = sorted((root / "train").glob("*.npz"))[0]
+    victim.write_bytes(os.urandom(200))
+    return root
+
+
+def _symsol_meta(env: Env, text: str) -> Path:
+    root = env.copy_of(env.symsol, "symsol")
+    (root / "train" / "meta.json").write_text(text)
+    return root
+
+
+def _symsol_without_meta(env: Env) -> Path:
+    root = env.copy_of(env.symsol, "symsol")
+    (root / "train" / "meta.json").unlink()
+    return root
+
+
+def _no_metrics(env: Env) -> None:
+    assert not list(env.dir.rglob("metrics.json")), "nothing is written for bad input"
+
+
+def _no_checkpoints(env: Env) -> None:
+    assert not list(env.dir.rglob("*.ckpt*")) or all(
+        p.name == "tampered.ckpt" for p in env.dir.rglob("*.ckpt")
+    )
+    _no_metrics(env)
+
+
+def _sentinel_intact(env: Env) -> None:
+    assert (env.dir / "precious.txt").read_text() == "keep", "the checkpoint's payload ran"
+    _no_metrics(env)
+
+
+def _whole_shards(env: Env) -> None:
+    for p in (env.dir / "ctrlc").rglob("*.npz"):
+        with np.load(p) as z:
+            list(z.keys())
+    assert not list((env.dir / "ctrlc").rglob("*.tmp")), "no half-written files"
+
+
+def _started_rendering(env: Env) -> bool:
+    return any((env.dir / "ctrlc").rglob("*.npz"))
+
+
+def _run(env: Env) -> str:
+    return f"hydra.run.dir={env.dir / 'run'}"
+
+
+CASES = [
+    # ---- checkpoints
+    Case("ckpt_payload_eval", "refused, naming the key; the payload never runs",
+         lambda e: ["eval", f"ckpt_path={_tampered(e)}", _run(e)], "is not a class posediff builds",
+         after=_sentinel_intact),
+    Case("ckpt_payload_predict", "refused, naming the key; the payload never runs",
+         lambda e: ["predict", f"ckpt_path={_tampered(e)}", "index=0", _run(e)], "is not a class posediff builds",
+         after=_sentinel_intact),
+    Case("ckpt_payload_fit_resume", "refused before training; the payload never runs",
+         lambda e: ["fit", *TOY, f"ckpt_path={_tampered(e)}", _run(e)], "is not a class posediff builds",
+         after=_sentinel_intact),
+    Case("ckpt_random_bytes", "not a PyTorch checkpoint",
+         lambda e: ["eval", f"ckpt_path={_write(e, 'x.ckpt', os.urandom(1000))}", _run(e)],
+         "is not a PyTorch checkpoint"),
+    Case("ckpt_missing_file", "not found, and where fit writes them",
+         lambda e: ["eval", f"ckpt_path={e.dir / 'none.ckpt'}", _run(e)], "not found"),
+    Case("eval_without_ckpt_path", "ckpt_path is required",
+         lambda e: ["eval", _run(e)], "ckpt_path is required"),
+    Case("resume_other_architecture", "refused before training, naming the first differing tensor",
+         lambda e: ["fit", *TOY, "denoiser.hidden_dim=24", f"ckpt_path={e.ckpt}", _run(e)],
+         "trained with another architecture", after=_no_metrics),
+    # ---- outputs
+    Case("demo_out_parent", "refused: a folder that holds the working folder",
+         lambda e: ["demo", "out=.."], "holds the working folder"),
+    Case("demo_out_foreign", "refused: not made by posediff, left alone",
+         lambda e: (e.dir / "mine").mkdir() or (e.dir / "mine" / "f.txt").write_text("x") and
+         ["demo", f"out={e.dir / 'mine'}"], "not made by posediff"),
+    Case("make_bop_overwrite_parent", "refused: a folder that holds the working folder",
+         lambda e: ["data", "make-bop", "out=..", "overwrite=true"], "holds the working folder"),
+    Case("make_bop_overwrite_foreign", "refused: not made by posediff, left alone",
+         lambda e: (e.dir / "mine").mkdir() or (e.dir / "mine" / "f.txt").write_text("x") and
+         ["data", "make-bop", f"out={e.dir / 'mine'}", "overwrite=true"], "not made by posediff"),
+    Case("run_dir_under_a_file", "the file in the way is named",
+         lambda e: _write(e, "afile", b"x") and ["eval", f"ckpt_path={e.ckpt}", f"hydra.run.dir={e.dir / 'afile' / 'x'}"],
+         "which is a file, not a folder"),
+    # ---- numeric options (all before training or writing)
+    Case("fit_sampler_steps_negative", "refused before training (not stored in a checkpoint)",
+         lambda e: ["fit", *TOY, "sampler.num_steps=-1", _run(e)], "sampler.num_steps must be", after=_no_checkpoints),
+    Case("fit_eval_steps_zero", "refused before training",
+         lambda e: ["fit", *TOY, "eval.num_steps=[0]", _run(e)], "eval.num_steps must be", after=_no_checkpoints),
+    Case("fit_max_steps", "refused before training",
+         lambda e: ["fit", *TOY, "trainer.max_steps=-5", _run(e)], "trainer.max_steps must be", after=_no_checkpoints),
+    Case("eval_max_inputs_negative", "refused (was an empty table, exit 0)",
+         lambda e: ["eval", f"ckpt_path={e.ckpt}", "max_inputs=-1", _run(e)], "max_inputs must be",
+         after=_no_metrics),
+    Case("eval_num_samples_zero", "refused",
+         lambda e: ["eval", f"ckpt_path={e.ckpt}", "num_samples=0", _run(e)], "num_samples must be"),
+    Case("predict_index_negative", "refused",
+         lambda e: ["predict", f"ckpt_path={e.ckpt}", "index=-1", _run(e)], "index must be"),
+    Case("render_negative_size", "refused; nothing written, so the corrected run works",
+         lambda e: [*RENDER, "image_size=-5", f"out={e.dir / 'r'}"], "image_size",
+         after=lambda e: not (e.dir / "r").exists() or pytest.fail("render wrote before failing")),
+    # ---- images
+    Case("predict_truncated_png", "truncated or corrupt, save it again",
+         lambda e: ["predict", f"ckpt_path={e.ckpt}", f"image={_truncated_png(e)}", _run(e)], "truncated"),
+    Case("predict_decompression_bomb", "over the pixel limit, checked from the header",
+         lambda e: ["predict", f"ckpt_path={e.ckpt}", f"image={_bomb(e)}", _run(e)], "decompression-bomb guard"),
+    Case("predict_not_an_image", "not an image PIL can read",
+         lambda e: ["predict", f"ckpt_path={e.ckpt}", f"image={_write(e, 'x.png', b'hello')}", _run(e)],
+         "not an image"),
+    Case("predict_float_image", "32-bit pixels refused",
+         lambda e: ["predict", f"ckpt_path={e.ckpt}", f"image={_png(e, 'f.tif', np.zeros((8, 8), np.float32), 'F')}",
+                    _run(e)], "32-bit"),
+    Case("predict_toy_checkpoint_on_image", "not trained on images",
+         lambda e: ["predict", f"ckpt_path={e.ckpt}", f"image={_png(e, 'ok.png', np.zeros((8, 8, 3), np.uint8))}",
+                    _run(e)], "was not trained on images"),
+    # ---- BOP data
+    Case("bop_missing_train_mask", "refused up front, naming the file (was a crash mid-training)",
+         lambda e: ["fit", *BOP, f"data.root={_bop_without(e, 'train_pbr/*/mask_visib/*.png')}", _run(e)],
+         "is missing", after=_no_checkpoints),
+    Case("bop_missing_train_rgb", "refused up front, naming the file",
+         lambda e: ["fit", *BOP, f"data.root={_bop_without(e, 'train_pbr/*/rgb/*')}", _run(e)], "is missing",
+         after=_no_checkpoints),
+    Case("bop_missing_test_depth", "refused up front (was a failure once an estimate overlapped)",
+         lambda e: ["fit", *BOP, f"data.root={_bop_without(e, 'test_primesense/*/depth/*.png')}", _run(e)],
+         "is missing", after=_no_checkpoints),
+    Case("bop_test_image_wrong_size", "refused up front (was accepted)",
+         lambda e: ["fit", *BOP, f"data.root={_bop_resized_test_image(e)}", _run(e)], "pixels, not",
+         after=_no_checkpoints),
+    Case("bop_no_diameter", "refused, naming the object (was a KeyError)",
+         lambda e: ["fit", *BOP, f"data.root={_bop_without_diameter(e)}", _run(e)], "diameter",
+         after=_no_checkpoints),
+    Case("bop_missing_root", "the path and the command that makes a dataset",
+         lambda e: ["fit", *BOP, f"data.root={e.dir / 'nothere'}", _run(e)], "make-bop"),
+    # ---- SYMSOL data
+    Case("symsol_missing_root", "the path and the command that renders it",
+         lambda e: ["fit", *SYMSOL, f"data.root={e.dir / 'nothere'}", _run(e)], "posediff data render"),
+    Case("symsol_corrupt_shard", "the shard named, re-render (was a 40-90 line traceback)",
+         lambda e: ["fit", *SYMSOL, f"data.root={_symsol_corrupt_shard(e)}", _run(e)], ".npz",
+         after=_no_checkpoints),
+    Case("symsol_meta_is_a_list", "the file named",
+         lambda e: ["fit", *SYMSOL, f"data.root={_symsol_meta(e, '[]')}", _run(e)], "meta.json"),
+    Case("render_resume_other_seed", "refused: the shards were rendered from another seed",
+         lambda e: [*RENDER, "split=train", "seed=1", f"out={_symsol_without_meta(e)}"], "seed"),
+    # ---- names
+    Case("unknown_group", "the registered groups listed",
+         lambda e: ["fit", "group=nope"], "available: r3so3, se2, se3, so3"),
+    Case("unknown_command", "the commands listed", lambda e: ["fitt"], "available:"),
+    Case("encoder_weights_missing", "the file named",
+         lambda e: ["fit", *SYMSOL, "data.mode=render", "data.n_per_shape_train=2",
+                    f"encoder.weights={e.dir / 'none.pt'}", _run(e)], "none.pt"),
+    # ---- Ctrl-C
+    Case("render_ctrl_c", "exit 130, one line; every shard on disk is whole",
+         lambda e: [*RENDER[:-4], "n_per_shape=400", "shard_size=8", "progress=false", f"out={e.dir / 'ctrlc'}"],
+         "interrupted", code=130, interrupt=_started_rendering, after=_whole_shards),
+]  # fmt: skip
+
+
+def _snapshot(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _execute(case: Case, env: Env) -> tuple[int, str, str, dict[str, bytes]]:
+    args = case.args(env)
+    (env.dir / "precious.txt").exists() or (env.dir / "precious.txt").write_text("keep")
+    before = _snapshot(env.dir)
+    cwd = env.dir / "work"
+    cwd.mkdir(exist_ok=True)
+    (cwd / "notes.txt").write_text("my notes")
+    before = {**before, "work/notes.txt": b"my notes"}
+    proc = subprocess.Popen(
+        [*POSEDIFF, *args],
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "1"},
+    )
+    if case.interrupt is not None:
+        deadline = time.monotonic() + 120
+        while not case.interrupt(env) and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGINT)
+    try:
+        out, err = proc.communicate(timeout=300)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+    return proc.returncode, out, err, before
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory: pytest.TempPathFactory) -> Env:
+    from posediff.data.bop.fixture import make_bop_fixture
+
+    base = tmp_path_factory.mktemp("bad_inputs")
+    run = base / "toy"
+    assert main(["fit", *TOY, f"hydra.run.dir={run}"]) == 0
+    bop = base / "bop"
+    make_bop_fixture(bop, seed=0, width=96, height=72, pbr_scenes=1, pbr_images=2, train_views=2,
+                     test_scenes=1, test_images=1)  # fmt: skip
+    symsol = base / "symsol"
+    for split in ("train", "test"):
+        assert main([*RENDER, f"split={split}", f"out={symsol}"]) == 0
+    return Env(ckpt=run / "checkpoints" / "last.ckpt", bop=bop, symsol=symsol)
+
+
+@pytest.fixture(scope="module")
+def results(env: Env, tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple]:
+    shared_before = {name: _snapshot(p) for name, p in (("bop", env.bop), ("symsol", env.symsol))}
+    base = tmp_path_factory.mktemp("cases")
+
+    def one(case: Case) -> tuple:
+        case_env = copy.copy(env)
+        case_env.dir = base / case.id
+        case_env.dir.mkdir()
+        return (*_execute(case, case_env), case_env)
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        done = dict(zip([c.id for c in CASES], pool.map(one, CASES), strict=True))
+    for name, p in (("bop", env.bop), ("symsol", env.symsol)):
+        assert _snapshot(p) == shared_before[name], f"the shared {name} input changed"
+    return done
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
+def test_bad_input_gets_one_line(case: Case, results: dict[str, tuple]) -> None:
+    code, out, err, before, case_env = results[case.id]
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert "Traceback" not in err + out, err[-3000:]
+    assert code == case.code, (code, err[-2000:])
+    assert len(lines) == 1 and lines[0].startswith("posediff"), lines[-20:]
+    assert case.message in lines[0], lines[0]
+    after = _snapshot(case_env.dir)
+    damaged = [k for k, v in before.items() if after.get(k) != v]
+    assert not damaged, f"files changed or removed: {damaged}"
+    if case.after is not None:
+        case.after(case_env)
+
+
+def test_table_is_in_the_readme() -> None:
+    """The README's reliability section counts these cases."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    assert f"{len(CASES)} bad inputs" in readme
+
+
+def test_sixteen_bit_grey_png_is_read_not_whitened(tmp_path: Path) -> None:
+    """A 16-bit grey PNG was 99.7 % white after PIL's RGB conversion; it is scaled by 65535 now."""
+    from posediff.predict import load_image
+
+    grey = np.linspace(0, 65535, 32 * 32).reshape(32, 32).astype(np.uint16)
+    path = _png(Env(Path(), Path(), Path(), tmp_path), "g16.png", grey)
+    from PIL import Image
+
+    assert Image.open(path).mode.startswith("I;16")
+    img = load_image(path, 32)
+    assert img.shape == (3, 32, 32)
+    np.testing.assert_allclose(img.mean().item(), 0.5, atol=0.01)
+    np.testing.assert_allclose(img[0].numpy(), grey / 65535.0, atol=1 / 255 + 1e-6)
