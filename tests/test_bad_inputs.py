@@ -377,6 +377,8 @@ def test_table_is_in_the_readme() -> None:
     """The README's reliability section counts these cases."""
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     assert f"{len(CASES)} bad inputs" in readme
+    missing = [c.id for c in CASES if f"| `{c.id}` | {c.gets} | {c.code} |" not in readme]
+    assert not missing, f"README reliability table lacks {missing}"
 
 
 def test_sixteen_bit_grey_png_is_read_not_whitened(tmp_path: Path) -> None:
