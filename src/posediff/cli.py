@@ -212,9 +212,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     """``posediff <command> ...``: the exit code (0 ok, 2 bad input, 130 interrupted)."""
     try:
         return _main(argv)
-    except KeyboardInterrupt:
-        print("posediff: interrupted (Ctrl-C); files already written are complete, nothing is half-written",
-              file=sys.stderr)  # fmt: skip
+    except KeyboardInterrupt as e:
+        what = f"{e}; " if str(e) else ""
+        print(f"posediff: interrupted (Ctrl-C); {what}files already written are whole (written to temporary "
+              "names, then renamed)", file=sys.stderr)  # fmt: skip
         return 130
 
 

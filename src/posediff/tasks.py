@@ -202,9 +202,9 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
         trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
     except SystemExit:  # Lightning exits after a graceful Ctrl-C; report it as the interrupt it was
         if trainer.interrupted:
-            print(f"posediff fit: stopped; resume with ckpt_path={out_dir / 'checkpoints' / 'last.ckpt'}",
-                  file=sys.stderr)  # fmt: skip
-            raise KeyboardInterrupt from None
+            last = out_dir / "checkpoints" / "last.ckpt"
+            hint = f"resume with ckpt_path={last}" if last.is_file() else "no checkpoint was written yet"
+            raise KeyboardInterrupt(f"fit stopped at step {trainer.global_step}; {hint}") from None
         raise
     if not trainer.is_global_zero:
         return 0
