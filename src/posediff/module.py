@@ -130,8 +130,10 @@ class PoseDiffusionModule(L.LightningModule):
         self.anchor_width = n * n if self.anchor else 0
         #: the resolved run configuration, stored in checkpoints when set (by ``posediff fit``)
         self.config: dict[str, Any] | None = None
-        #: the training loss of every step (floats), for run summaries
+        #: the training loss of every step (floats), for run summaries; stored in checkpoints
         self.loss_history: list[float] = []
+        #: the global RNG states of a checkpoint being resumed, restored in :meth:`on_train_start`
+        self._rng_to_restore: dict[str, Any] | None = None
 
     @property
     def group(self):  # noqa: ANN201 - LieGroup
@@ -308,6 +310,23 @@ class PoseDiffusionModule(L.LightningModule):
         if self.config is not None:
             checkpoint["posediff_config"] = self.config
             checkpoint["posediff_diffusion"] = self.diffusion.describe()
+        # exact resume (with the training loader's position, which Lightning stores): the loss curve
+        # so far and the global RNG streams the training noise is drawn from
+        checkpoint[LOSS_HISTORY_KEY] = torch.tensor(self.loss_history, dtype=torch.float64)
+        checkpoint[RNG_KEY] = rng_state()
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        history = checkpoint.get(LOSS_HISTORY_KEY)
+        if history is not None:
+            self.loss_history = [float(v) for v in history.tolist()]
+        # applied when training starts (after Lightning has set up the training data), never when a
+        # checkpoint is only loaded for evaluation
+        self._rng_to_restore = checkpoint.get(RNG_KEY)
+
+    def on_train_start(self) -> None:
+        state, self._rng_to_restore = getattr(self, "_rng_to_restore", None), None
+        if state is not None:
+            set_rng_state(state)
 
     def configure_optimizers(self) -> dict[str, Any]:
         den = {id(p) for p in self.denoiser.parameters()}
@@ -359,6 +378,54 @@ class PoseDiffusionModule(L.LightningModule):
             dtype=feature.dtype,
             device=feature.device,
         )
+
+
+#: checkpoint keys of the training loss so far (float64 tensor) and of the global RNG states
+LOSS_HISTORY_KEY = "posediff_loss_history"
+RNG_KEY = "posediff_rng"
+
+
+def rng_state() -> dict[str, Any]:
+    """The global RNG states (torch CPU, CUDA when initialised, numpy, Python) as plain tensors and
+    containers (``torch.load(weights_only=True)`` reads them)."""
+    import random
+
+    import numpy as np
+
+    kind, keys, pos, has_gauss, cached = np.random.get_state()
+    version, internal, gauss_next = random.getstate()
+    state: dict[str, Any] = {
+        "torch": torch.get_rng_state(),
+        "numpy": {
+            "kind": str(kind),
+            "keys": torch.from_numpy(np.asarray(keys, dtype=np.int64)),
+            "pos": int(pos),
+            "has_gauss": int(has_gauss),
+            "cached": float(cached),
+        },
+        "python": {"version": int(version), "internal": list(internal), "gauss_next": gauss_next},
+    }
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: dict[str, Any]) -> None:
+    """Restore what :func:`rng_state` returned."""
+    import random
+
+    import numpy as np
+
+    torch.set_rng_state(state["torch"])
+    n = state["numpy"]
+    keys = n["keys"].numpy().astype(np.uint32)
+    np.random.set_state((n["kind"], keys, n["pos"], n["has_gauss"], n["cached"]))
+    p = state["python"]
+    random.setstate((p["version"], tuple(p["internal"]), p["gauss_next"]))
+    if "cuda" in state and torch.cuda.is_available():
+        cuda = state["cuda"]
+        if len(cuda) == torch.cuda.device_count():
+            torch.cuda.set_rng_state_all(cuda)
 
 
 def _chordal_to_angle(chordal_sq: Tensor) -> Tensor:

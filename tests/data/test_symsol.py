@@ -302,19 +302,21 @@ def test_datamodule_streams_shards_and_renders_on_the_fly(tmp_path: Path) -> Non
     dm = SymsolDataModule("symsolt", "uniform", root=str(tmp_path), image_size=32, batch_size=8)
     dm.setup("fit")
     batches = list(dm.train_dataloader())
-    assert len(batches) == 5
+    assert len(batches) == 4  # 38 training samples: the last 2 (5%) are held out for validation
     _check_batch(batches[0], 8, 32)
     seen = torch.cat([b["index"] for b in batches])
-    assert len(set(seen.tolist())) == 40
-    assert not torch.equal(seen, torch.arange(40)), "training order must be shuffled"
+    assert len(set(seen.tolist())) == 32 and int(seen.max()) < 38
+    assert not torch.equal(seen, torch.arange(32)), "training order must be shuffled"
+    assert torch.cat([b["index"] for b in dm.val_dataloader()]).tolist() == [38, 39]
     test = torch.cat([b["index"] for b in dm.test_dataloader()])
     assert test.tolist() == list(range(10))
     sub = SymsolDataModule(
         "symsolt", "uniform", root=str(tmp_path), image_size=32, shapes=["cube"], batch_size=2
     )
     sub.setup("fit")
-    ids = torch.cat([b["shape"] for b in sub.train_dataloader()])
-    assert len(ids) == 8 and set(ids.tolist()) == {SHAPE_IDS["cube"]}, "a subset of the rendered shapes"
+    ids = torch.cat([b["shape"] for b in sub.train_dataloader()])  # 7 cubes (1 held out), batches of 2
+    assert len(ids) == 6 and set(ids.tolist()) == {SHAPE_IDS["cube"]}, "a subset of the rendered shapes"
+    assert {int(b["shape"][0]) for b in sub.val_dataloader()} == {SHAPE_IDS["cube"]}
     limited = SymsolDataModule("symsolt", "uniform", root=str(tmp_path), image_size=32, n_per_shape_test=1)
     limited.setup("test")
     assert sorted(torch.cat([b["shape"] for b in limited.test_dataloader()]).tolist()) == list(range(5))

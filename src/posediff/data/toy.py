@@ -35,6 +35,11 @@ from torch.utils.data import DataLoader, Dataset
 from ..lie import LieGroup, get_group
 from ..lie.so3 import uniform_rotation
 from ..symmetry import SHAPES, canonical_rotation, is_continuous, min_angle_to_equivalents, symmetry_group
+from .resumable import ResumableDataLoader, eval_loader
+
+#: seed offsets of the toy's held-out draws (the training set is drawn from ``seed`` itself)
+TEST_SEED_OFFSET = 1_000_003
+VAL_SEED_OFFSET = 2_000_003
 
 
 class SymmetryToy(Dataset[dict[str, Tensor]]):
@@ -173,13 +178,17 @@ def spread_poses(shape: str, num_poses: int, seed: int, candidates_per_pose: int
 
 
 class SymmetryToyDataModule(L.LightningDataModule):
-    """Train / test splits of the toy (different seeds), for ``posediff fit +experiment=toy_*``.
+    """Train / validation / test splits of the toy (three separately seeded draws), for
+    ``posediff fit +experiment=toy_*``. Validation (``val/loss``, which picks ``best.ckpt``) never
+    reads the test draw. The training loader resumes mid-epoch exactly
+    (:class:`~posediff.data.resumable.ResumableDataLoader`).
 
     Args:
         group: the pose group (so3, se3 or r3so3).
         shapes: which shapes (default all five).
         num_train: training samples (drawn once; an epoch is one pass).
         num_test_per_shape: evaluation conditions per shape.
+        num_val_per_shape: validation samples per shape (seed ``seed + VAL_SEED_OFFSET``).
         batch_size: conditions per training step (each gets ``num_noisy`` noisy poses in the model).
         num_poses: fixed canonical poses per shape (None: every orientation; see ``SymmetryToy``).
     """
@@ -191,6 +200,7 @@ class SymmetryToyDataModule(L.LightningDataModule):
         shapes: Sequence[str] = SHAPES,
         num_train: int = 100_000,
         num_test_per_shape: int = 8,
+        num_val_per_shape: int = 8,
         batch_size: int = 32,
         seed: int = 0,
         translation_bound: float = 1.0,
@@ -202,12 +212,14 @@ class SymmetryToyDataModule(L.LightningDataModule):
         self.shapes = tuple(shapes)
         self.num_train = int(num_train)
         self.num_test_per_shape = int(num_test_per_shape)
+        self.num_val_per_shape = int(num_val_per_shape)
         self.batch_size = int(batch_size)
         self.seed = int(seed)
         self.translation_bound = float(translation_bound)
         self.num_workers = int(num_workers)
         self.num_poses = num_poses
         self.train: SymmetryToy | None = None
+        self.val: SymmetryToy | None = None
         self.test: SymmetryToy | None = None
 
     def setup(self, stage: str | None = None) -> None:
@@ -216,11 +228,15 @@ class SymmetryToyDataModule(L.LightningDataModule):
             "translation_bound": self.translation_bound,
             "num_poses": self.num_poses,
         }
-        if self.train is None:
+        if stage in (None, "fit") and self.train is None:
             self.train = SymmetryToy(self.group, self.num_train, seed=self.seed, **kw)
+        if stage in (None, "fit", "validate") and self.val is None:
+            self.val = SymmetryToy(
+                self.group, self.num_val_per_shape, seed=self.seed + VAL_SEED_OFFSET, per_shape=True, **kw
+            )
         if self.test is None:
             self.test = SymmetryToy(
-                self.group, self.num_test_per_shape, seed=self.seed + 1_000_003, per_shape=True, **kw
+                self.group, self.num_test_per_shape, seed=self.seed + TEST_SEED_OFFSET, per_shape=True, **kw
             )
 
     @property
@@ -229,16 +245,20 @@ class SymmetryToyDataModule(L.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         assert self.train is not None
-        gen = torch.Generator().manual_seed(self.seed)
-        return DataLoader(
+        return ResumableDataLoader(
             self.train,
             batch_size=self.batch_size,
             shuffle=True,
+            seed=self.seed,
             drop_last=True,
-            generator=gen,
             num_workers=self.num_workers,
         )
 
+    def val_dataloader(self) -> DataLoader:
+        """The separately seeded validation draw (never the test draw)."""
+        assert self.val is not None, "call setup('fit') first"
+        return eval_loader(self.val, batch_size=self.batch_size)
+
     def test_dataloader(self) -> DataLoader:
         assert self.test is not None
-        return DataLoader(self.test, batch_size=self.num_test_per_shape, shuffle=False)
+        return eval_loader(self.test, batch_size=self.num_test_per_shape)

@@ -31,6 +31,7 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
 
 from ...lie import LieGroup, get_group
+from ..resumable import ResumableDataLoader, eval_loader
 from .encoding import PoseEncoding
 from .reader import (
     BopFormatError,
@@ -71,8 +72,9 @@ def keep_mask(table: InstanceTable, min_visible_px: int, min_visib_fract: float)
 
 
 class BopInstanceDataset(Dataset):
-    """Crops of ``instances`` (map-style). ``train``: DZI jitter (drawn from torch's RNG, which
-    Lightning seeds per worker); otherwise the centred box."""
+    """Crops of ``instances`` (map-style). ``train``: DZI jitter drawn from ``(seed, epoch, index)``
+    (:meth:`set_epoch`; the same crop for the same sample in the same epoch, in any worker and
+    after a resume); otherwise the centred box."""
 
     def __init__(
         self,
@@ -86,8 +88,10 @@ class BopInstanceDataset(Dataset):
         dzi_pad: float = 1.5,
         rotation_only: bool = False,
         symmetries: dict[int, torch.Tensor] | None = None,
+        seed: int = 0,
     ) -> None:
         self.instances = instances if isinstance(instances, InstanceTable) else list(instances)
+        self.seed, self.epoch = int(seed), 0
         #: obj_id → its ``models_info`` symmetry rotations, padded to one size ``(S, 3, 3)`` with a mask
         #: (for the symmetry-aware regression losses; samples then carry ``symmetries`` / ``symmetries_mask``)
         self.symmetries = _pad_symmetries(symmetries) if symmetries else None
@@ -100,6 +104,10 @@ class BopInstanceDataset(Dataset):
     def __len__(self) -> int:
         return len(self.instances)
 
+    def set_epoch(self, epoch: int) -> None:
+        """The epoch the training jitter is drawn for (``ResumableDataLoader`` sets it every pass)."""
+        self.epoch = int(epoch)
+
     def box(self, inst: Instance, rng: np.random.Generator | None) -> tuple[np.ndarray, float]:
         """The crop ``(centre, side)`` of an instance (its object box; clipped to the image in training)."""
         bbox = clip_box(inst.bbox_obj, inst.image_hw) if self.train else inst.bbox_obj
@@ -107,7 +115,7 @@ class BopInstanceDataset(Dataset):
 
     def __getitem__(self, i: int) -> dict[str, Any]:
         inst = self.instances[i]
-        rng = np.random.default_rng(int(torch.randint(0, 2**62, ()))) if self.train else None
+        rng = np.random.default_rng([self.seed, self.epoch, int(i)]) if self.train else None
         centre, side = self.box(inst, rng)
         S = self.image_size
         rgb = crop(read_rgb(inst.rgb_path), centre, side, S)
@@ -186,6 +194,11 @@ class BopDataModule(L.LightningDataModule):
         group: ``se3`` / ``r3so3`` (pose ``[R | δ̂]``) or ``so3`` (rotation only).
         max_train_instances: train on at most this many instances (the first, after filtering).
         max_test_instances: score at most this many test targets (the first).
+        val_fraction, max_val_images: validation (``val/loss``, which picks ``best.ckpt``) holds out
+            this fraction of the training *images* (at most ``max_val_images``, at least one, never
+            all), chosen by a permutation seeded by ``seed``: every instance of a held-out image is
+            a validation instance (centred crops, no augmentation) and is excluded from training and
+            from the translation statistics. The test split is never read for validation.
     """
 
     def __init__(
@@ -213,6 +226,8 @@ class BopDataModule(L.LightningDataModule):
         num_workers: int = 0,
         max_train_instances: int | None = None,
         max_test_instances: int | None = None,
+        val_fraction: float = 0.05,
+        max_val_images: int = 100,
     ) -> None:
         super().__init__()
         self.group = get_group(group) if isinstance(group, str) else group
@@ -220,6 +235,11 @@ class BopDataModule(L.LightningDataModule):
             raise ValueError(
                 f"BOP poses need a 3-D rotation group (so3, se3, r3so3), not {self.group.name!r}"
             )
+        if not 0.0 < float(val_fraction) < 1.0 or int(max_val_images) < 1:
+            raise ValueError(
+                f"data.val_fraction must be in (0, 1) and data.max_val_images ≥ 1, got {val_fraction}, {max_val_images}"
+            )
+        self.val_fraction, self.max_val_images = float(val_fraction), int(max_val_images)
         if not root:
             raise ValueError(
                 "data.root is not set: point it at a BOP dataset folder (posediff data make-bop out=DIR makes one)"
@@ -240,6 +260,8 @@ class BopDataModule(L.LightningDataModule):
         self.max_train, self.max_test = max_train_instances, max_test_instances
         self.rotation_only = self.group.matrix_dim == 3
         self.train: BopInstanceDataset | None = None
+        #: held-out training images (see ``val_fraction``)
+        self.val: BopInstanceDataset | None = None
         self.test: BopInstanceDataset | None = None
         #: test targets dropped by the instance filter (scored as misses)
         self.skipped: list[Instance] = []
@@ -260,6 +282,7 @@ class BopDataModule(L.LightningDataModule):
             train=train,
             rotation_only=self.rotation_only,
             symmetries=self.symmetry_rotations(),
+            seed=self.seed,
             **self.dzi,
         )
 
@@ -273,7 +296,8 @@ class BopDataModule(L.LightningDataModule):
             }
         return self._symmetry_rotations
 
-    def _train_instances(self) -> InstanceTable:
+    def _train_instances(self) -> tuple[InstanceTable, InstanceTable]:
+        """``(train, val)``: the kept training instances, the held-out images' instances removed."""
         table = InstanceTable.concat(
             [
                 BopSplit(self.root, split, self.models, obj_ids=self.obj_ids).instances
@@ -286,7 +310,33 @@ class BopDataModule(L.LightningDataModule):
             raise BopFormatError(
                 f"no training instances in {self.root} / {self.train_splits} pass the filter"
             )
-        return kept[: self.max_train] if self.max_train else kept
+        train, val = self.split_validation(kept)
+        self.summary["train"]["val_images"] = int(len(np.unique(self._image_keys(val))))
+        self.summary["train"]["val"] = len(val)
+        return (train[: self.max_train] if self.max_train else train), val
+
+    @staticmethod
+    def _image_keys(table: InstanceTable) -> np.ndarray:
+        """One key per instance naming its image: ``(scene folder index, im_id)`` as one int64."""
+        return table.scene.astype(np.int64) * (1 << 32) + table.im_id.astype(np.int64)
+
+    def split_validation(self, table: InstanceTable) -> tuple[InstanceTable, InstanceTable]:
+        """``(train, val)`` of the training instances by whole images (``val_fraction``,
+        ``max_val_images``), deterministic in ``seed``; val instances in the permutation's image order
+        (so the first validation batches mix scenes and objects)."""
+        keys = self._image_keys(table)
+        images = np.unique(keys)
+        n_val = min(self.max_val_images, max(1, round(self.val_fraction * len(images))), len(images) - 1)
+        if n_val < 1:
+            raise BopFormatError(
+                f"{self.root} / {self.train_splits} has one training image: nothing to hold out for validation"
+            )
+        held = np.random.default_rng([self.seed, 0x5A1]).permutation(images)[:n_val]
+        rank = {int(k): r for r, k in enumerate(held)}
+        is_val = np.isin(keys, held)
+        val_idx = np.flatnonzero(is_val)
+        val_idx = val_idx[np.argsort([rank[int(k)] for k in keys[val_idx]], kind="stable")]
+        return table.take(np.flatnonzero(~is_val)), table.take(val_idx)
 
     def fit_translation_stats(self, instances: InstanceTable, draws: int = 4) -> None:
         """Statistics of the raw SITE translation over the training instances under the training
@@ -336,10 +386,11 @@ class BopDataModule(L.LightningDataModule):
 
     def setup(self, stage: str | None = None) -> None:
         if stage in (None, "fit") and self.train is None:
-            train = self._train_instances()
-            if not self.encoding.fitted:
+            train, val = self._train_instances()
+            if not self.encoding.fitted:  # training instances only: never the held-out ones
                 self.fit_translation_stats(train)
             self.train = self._dataset(train, train=True)
+            self.val = self._dataset(val, train=False)
         if stage in (None, "fit", "validate", "test", "predict") and self.test is None:
             if not self.encoding.fitted:
                 raise BopFormatError(
@@ -354,6 +405,8 @@ class BopDataModule(L.LightningDataModule):
         if "train" in self.summary:
             t = self.summary["train"]
             parts.append(f"train {'+'.join(t['splits'])}: {t['kept']} of {t['instances']} instances kept")
+            if "val" in t:
+                parts.append(f"validation: {t['val']} of them held out ({t['val_images']} training images)")
         if "test" in self.summary:
             t = self.summary["test"]
             parts.append(
@@ -368,25 +421,27 @@ class BopDataModule(L.LightningDataModule):
             batch["image"] = self.augment(batch["image"]) * batch["mask"][:, None]
         return batch
 
-    def _loader(self, ds: Dataset, shuffle: bool) -> DataLoader:
-        return DataLoader(
-            ds,
+    def train_dataloader(self) -> DataLoader:
+        """Shuffled training crops; resumes mid-epoch exactly (:class:`~posediff.data.resumable.ResumableDataLoader`)."""
+        assert self.train is not None, "call setup() first"
+        return ResumableDataLoader(
+            self.train,
             batch_size=self.batch_size,
-            shuffle=shuffle,
+            shuffle=True,
+            seed=self.seed,
+            drop_last=len(self.train) >= self.batch_size,
             num_workers=self.num_workers,
             persistent_workers=False,
-            drop_last=shuffle and len(ds) >= self.batch_size,
         )
 
-    def train_dataloader(self) -> DataLoader:
-        assert self.train is not None, "call setup() first"
-        return self._loader(self.train, shuffle=True)
+    def val_dataloader(self) -> DataLoader:
+        """The held-out training images (``val_fraction``); never the test split."""
+        assert self.val is not None, "call setup('fit') first"
+        return eval_loader(self.val, batch_size=self.batch_size, num_workers=self.num_workers)
 
     def test_dataloader(self) -> DataLoader:
         assert self.test is not None, "call setup() first"
-        return self._loader(self.test, shuffle=False)
-
-    val_dataloader = test_dataloader
+        return eval_loader(self.test, batch_size=self.batch_size, num_workers=self.num_workers)
 
 
 __all__ = ["BopDataModule", "BopInstanceDataset", "keep_instance"]

@@ -31,6 +31,7 @@ from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_in
 
 from ...lie import LieGroup, get_group
 from ...symmetry import SHAPES
+from ..resumable import ResumableDataLoader, eval_loader
 from .poses import check_spec, sample_poses
 from .render import SCENE_DISTANCE, SymsolRenderer, intrinsics
 from .shards import SymsolShards
@@ -124,7 +125,8 @@ class SymsolShardDataset(IterableDataset):
     """Streams a rendered split. ``shuffle``: shard order and in-shard order change every epoch
     (seeded by ``seed`` and :meth:`set_epoch`); shards are split across DDP ranks, then workers.
     ``shapes``: only these shapes (names); ``limit_per_shape``: only the first that many samples of
-    each shape (in index order)."""
+    each shape (in index order); ``mask``: only the samples where this ``(N,)`` bool array is true
+    (the train / validation hold-out). Shards without a kept sample are never read."""
 
     def __init__(
         self,
@@ -136,13 +138,15 @@ class SymsolShardDataset(IterableDataset):
         rotation_only: bool = False,
         limit_per_shape: int | None = None,
         shapes: Sequence[str] | None = None,
+        mask: np.ndarray | None = None,
     ) -> None:
         self.shards = shards
         self.rotation_only = rotation_only
-        self.keep: np.ndarray | None = None
+        self.keep: np.ndarray | None = None if mask is None else np.asarray(mask, dtype=bool).copy()
         sid = np.asarray(shards.index["shape_id"])
         if shapes is not None:
-            self.keep = np.isin(sid, [SHAPES.index(s) for s in shapes])
+            keep = np.isin(sid, [SHAPES.index(s) for s in shapes])
+            self.keep = keep if self.keep is None else self.keep & keep
         if limit_per_shape is not None:
             rank = np.zeros(len(sid), dtype=np.int64)
             for k in np.unique(sid):
@@ -217,6 +221,14 @@ class SymsolDataModule(L.LightningDataModule):
     ``n_per_shape_train`` / ``n_per_shape_test`` samples per shape on the fly at ``image_size``.
     In ``shards`` mode ``n_per_shape_test`` keeps the first that many test samples per shape
     (``None``: all).
+
+    Validation (``val/loss``, which picks ``best.ckpt``) never reads the test split: in ``shards``
+    mode it holds out the last ``val_fraction`` of the training samples in index order (at most
+    ``max_val``, at least one; the shapes are interleaved, so the tail mixes them and sits in the
+    last shards), which training then skips; in ``render`` mode it is a separately seeded draw
+    from the training distribution (the ``val`` pose stream), ``val_fraction · n_per_shape_train``
+    per shape (at most ``max_val`` in all). The training loader resumes mid-epoch exactly
+    (:class:`~posediff.data.resumable.ResumableDataLoader`).
     """
 
     def __init__(
@@ -235,8 +247,15 @@ class SymsolDataModule(L.LightningDataModule):
         num_workers: int = 0,
         with_depth: bool = False,
         group: LieGroup | str = "se3",
+        val_fraction: float = 0.05,
+        max_val: int = 1000,
     ) -> None:
         super().__init__()
+        if not 0.0 < float(val_fraction) < 1.0 or int(max_val) < 1:
+            raise ValueError(
+                f"data.val_fraction must be in (0, 1) and data.max_val ≥ 1, got {val_fraction}, {max_val}"
+            )
+        self.val_fraction, self.max_val = float(val_fraction), int(max_val)
         self.group = get_group(group) if isinstance(group, str) else group
         if self.group.name not in ("so3", "se3", "r3so3"):
             raise ValueError(
@@ -253,11 +272,18 @@ class SymsolDataModule(L.LightningDataModule):
         self.dataset, self.mode, self.root = dataset, mode, root
         self.image_size, self.shapes, self.seed = int(image_size), tuple(shapes), seed
         self.n_per_shape = {"train": n_per_shape_train, "test": n_per_shape_test}
+        self.n_per_shape["val"] = max(
+            1, min(round(self.val_fraction * int(n_per_shape_train)), self.max_val // len(self.shapes))
+        )
         self.batch_size, self.num_workers, self.with_depth = batch_size, num_workers, with_depth
         self.train: Dataset | None = None
+        #: the validation samples (module docstring): never the test split
+        self.val: Dataset | None = None
         self.test: Dataset | None = None
 
-    def _split(self, split: str) -> Dataset:
+    def _split(self, split: str, mask: np.ndarray | None = None) -> Dataset:
+        """``train`` / ``val`` / ``test``: in shards mode ``val`` reads the training folder (with the
+        hold-out ``mask``); in render mode it is the ``val`` pose stream."""
         if self.mode == "render":
             return SymsolRenderDataset(
                 self.dataset,
@@ -270,7 +296,8 @@ class SymsolDataModule(L.LightningDataModule):
                 self.with_depth,
                 self.rotation_only,
             )
-        shards = SymsolShards(Path(str(self.root)), dataset=self.dataset, variant=self.variant, split=split)
+        folder = "test" if split == "test" else "train"
+        shards = SymsolShards(Path(str(self.root)), dataset=self.dataset, variant=self.variant, split=folder)
         m = shards.meta
         if (m["dataset"], m["variant"]) != (self.dataset, self.variant):
             raise ValueError(
@@ -292,37 +319,57 @@ class SymsolDataModule(L.LightningDataModule):
             seed=self.seed,
             with_depth=self.with_depth,
             rotation_only=self.rotation_only,
-            limit_per_shape=None if split == "train" else self.n_per_shape[split],
+            limit_per_shape=self.n_per_shape["test"] if split == "test" else None,
             shapes=None if tuple(m["shapes"]) == self.shapes else self.shapes,
+            mask=mask,
         )
 
+    def _train_and_val(self) -> tuple[Dataset, Dataset]:
+        """The training set and the validation set (module docstring)."""
+        if self.mode == "render":
+            return self._split("train"), self._split("val")
+        train = self._split("train")
+        assert isinstance(train, SymsolShardDataset)
+        n = len(train.shards)
+        kept = np.ones(n, dtype=bool) if train.keep is None else train.keep
+        idx = np.flatnonzero(kept)
+        n_val = min(self.max_val, max(1, round(self.val_fraction * len(idx))), len(idx) - 1)
+        if n_val < 1:
+            raise ValueError(
+                f"{train.shards.path} has one training sample: nothing to hold out for validation"
+            )
+        val = np.zeros(n, dtype=bool)
+        val[idx[-n_val:]] = True
+        train = self._split("train", mask=~val)
+        return train, self._split("val", mask=val)
+
     def setup(self, stage: str | None = None) -> None:
-        if stage in (None, "fit") and self.train is None:
-            self.train = self._split("train")
+        if stage in (None, "fit", "validate") and self.train is None:
+            self.train, self.val = self._train_and_val()
         if stage in (None, "fit", "validate", "test", "predict") and self.test is None:
             self.test = self._split("test")
 
-    def _loader(self, ds: Dataset, shuffle: bool) -> DataLoader:
-        return DataLoader(
-            ds,
+    def train_dataloader(self) -> DataLoader:
+        """Shuffled training samples; resumes mid-epoch exactly (the shards' shuffle follows the pass)."""
+        assert self.train is not None, "call setup() first"
+        return ResumableDataLoader(
+            self.train,
             batch_size=self.batch_size,
-            shuffle=shuffle and not isinstance(ds, IterableDataset),
+            shuffle=True,
+            seed=self.seed,
+            drop_last=True,
             num_workers=self.num_workers,
             persistent_workers=False,
-            drop_last=shuffle,
         )
 
-    def train_dataloader(self) -> DataLoader:
-        assert self.train is not None, "call setup() first"
-        if isinstance(self.train, SymsolShardDataset) and self.trainer is not None:
-            self.train.set_epoch(self.trainer.current_epoch)
-        return self._loader(self.train, shuffle=True)
+    def val_dataloader(self) -> DataLoader:
+        """The validation samples (held out of training; never the test split)."""
+        assert self.val is not None, "call setup('fit') first"
+        return eval_loader(self.val, batch_size=self.batch_size, num_workers=self.num_workers)
 
     def test_dataloader(self) -> DataLoader:
         assert self.test is not None, "call setup() first"
-        return self._loader(self.test, shuffle=False)
-
-    val_dataloader = test_dataloader
+        return eval_loader(self.test, batch_size=self.batch_size, num_workers=self.num_workers)
 
 
 __all__ = ["SymsolDataModule", "SymsolRenderDataset", "SymsolShardDataset", "to_sample"]
