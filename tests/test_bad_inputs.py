@@ -152,6 +152,10 @@ def _symsol_without_meta(env: Env) -> Path:
     return root
 
 
+def _text(path: Path) -> str:
+    return path.read_text() if path.is_file() else ""
+
+
 def _no_metrics(env: Env) -> None:
     assert not list(env.dir.rglob("metrics.json")), "nothing is written for bad input"
 
@@ -285,6 +289,10 @@ CASES = [
          lambda e: ["fit", *SYMSOL, "data.mode=render", "data.n_per_shape_train=2",
                     f"encoder.weights={e.dir / 'none.pt'}", _run(e)], "none.pt"),
     # ---- Ctrl-C
+    Case("fit_ctrl_c", "exit 130, one line: the step reached and how to resume",
+         lambda e: ["fit", *[a for a in TOY if not a.startswith("trainer.max_steps")], "trainer.max_steps=100000",
+                    "trainer.log_every_n_steps=1", _run(e)], "fit stopped at step", code=130,
+         interrupt=lambda e: "step" in _text(e.dir / "run" / "progress.log")),
     Case("render_ctrl_c", "exit 130, one line; every shard on disk is whole",
          lambda e: [*RENDER[:-4], "n_per_shape=400", "shard_size=8", "progress=false", f"out={e.dir / 'ctrlc'}"],
          "interrupted", code=130, interrupt=_started_rendering, after=_whole_shards),

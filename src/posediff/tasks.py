@@ -172,6 +172,7 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
         except CheckpointError as e:
             print(f"posediff fit: cannot resume: {e}", file=sys.stderr)
             return 2
+    _lightning_logs_to_stdout()
     callbacks = list(instantiate(cfg.trainer.get("callbacks")) or [])
     if not cfg.trainer.get("enable_progress_bar", True):  # Lightning refuses a bar callback then
         from lightning.pytorch.callbacks import ProgressBar
@@ -242,6 +243,19 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
             f"encoder weights: {_save_encoder(module, encoder_out, cfg, results)} (use: encoder.weights=<that file>)"
         )
     return 0
+
+
+def _lightning_logs_to_stdout() -> None:
+    """Lightning's info lines ("GPU available …") once, on stdout with posediff's own output: its loggers
+    also write them to stderr, where only errors belong (one line each)."""
+    import logging
+
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+        log = logging.getLogger(name)
+        for h in list(log.handlers):
+            if isinstance(h, logging.StreamHandler) and getattr(h, "stream", None) is sys.stderr:
+                log.removeHandler(h)
+        log.propagate = True
 
 
 def _whole(value: Any, key: str, least: int = 1, most: int | None = None, *, allow: tuple = ()) -> int:

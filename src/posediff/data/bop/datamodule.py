@@ -300,7 +300,7 @@ class BopDataModule(L.LightningDataModule):
         """``(train, val)``: the kept training instances, the held-out images' instances removed."""
         table = InstanceTable.concat(
             [
-                BopSplit(self.root, split, self.models, obj_ids=self.obj_ids).instances
+                BopSplit(self.root, split, self.models, obj_ids=self.obj_ids, require_depth=False).instances
                 for split in self.train_splits
             ]
         )
