@@ -1,6 +1,6 @@
 """``posediff fit`` end to end on a tiny toy: the loss falls and the spread beats the untrained model.
 
-A few hundred steps on the CPU (the full toy is ``benchmarks/toy.py``); runs through the real CLI.
+800 steps on the CPU (the full toy is ``benchmarks/toy.py``); runs through the real CLI.
 """
 
 import json
@@ -11,7 +11,7 @@ import pytest
 from posediff.cli import main
 
 TINY = [
-    "trainer.max_steps=400",
+    "trainer.max_steps=800",  # 400 passed on one lucky RNG stream only (0.56–0.65 of untrained over seeds)
     "trainer.log_every_n_steps=100",
     "trainer.enable_progress_bar=false",
     "data.shapes=[cone,cyl]",  # the continuous shapes learn within a few hundred steps
@@ -39,13 +39,13 @@ def test_tiny_toy_learns(experiment: str, tmp_path: Path) -> None:
     assert code == 0
     metrics = json.loads((out / "metrics.json").read_text())
     train = metrics["train"]
-    assert train["steps"] == 400
+    assert train["steps"] == 800
     assert train["loss_last"] < 0.8 * train["loss_first"], train
     before = metrics["before"]["overall"]["spread_deg"]
     after = metrics["after"]["default"]["10"]["overall"]["spread_deg"]
     if experiment == "toy_so3":
         assert after < 0.6 * before, f"spread {before:.1f}° untrained → {after:.1f}° trained"
-    else:  # SE(3): 400 steps learn the translation; the rotation needs far longer (README toy table)
+    else:  # SE(3): 800 steps learn the translation; the rotation needs far longer (README toy table)
         t_before = metrics["before"]["overall"]["translation_error"]
         t_after = metrics["after"]["default"]["10"]["overall"]["translation_error"]
         assert t_after < 0.6 * t_before
