@@ -123,7 +123,13 @@ def test_predict_on_a_test_target(trained: Path, tmp_path: Path, capsys: pytest.
     assert np.allclose(samples[:, :3, :3] @ samples[:, :3, :3].transpose(0, 2, 1), np.eye(3), atol=1e-6)
     assert 100 < np.median(samples[:, 2, 3]) < 5000  # decoded to millimetres in front of the camera
     # an image alone is not enough for a BOP model; an index past the targets is one line too
-    assert main(["predict", f"ckpt_path={ckpt}", "image=x.png", f"hydra.run.dir={tmp_path}"]) == 2
+    from PIL import Image
+
+    Image.new("RGB", (32, 32)).save(tmp_path / "x.png")  # a valid image (checked before the model)
+    assert (
+        main(["predict", f"ckpt_path={ckpt}", f"image={tmp_path / 'x.png'}", f"hydra.run.dir={tmp_path}"])
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "give index=N" in err
     assert main(["predict", f"ckpt_path={ckpt}", "index=100000", f"hydra.run.dir={tmp_path}"]) == 2
