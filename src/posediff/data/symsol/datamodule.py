@@ -296,7 +296,11 @@ class SymsolDataModule(L.LightningDataModule):
                 self.with_depth,
                 self.rotation_only,
             )
-        folder = "test" if split == "test" else "train"
+        return self._shard_dataset(self._open_shards("test" if split == "test" else "train"), split, mask)
+
+    def _open_shards(self, folder: str) -> SymsolShards:
+        """``<root>/<folder>`` opened (the reader verifies meta, index and every shard's provenance)
+        and checked against the config."""
         shards = SymsolShards(Path(str(self.root)), dataset=self.dataset, variant=self.variant, split=folder)
         m = shards.meta
         if (m["dataset"], m["variant"]) != (self.dataset, self.variant):
@@ -313,6 +317,13 @@ class SymsolDataModule(L.LightningDataModule):
                 f"{shards.path} was rendered at {m['image_size']} px, the config asks for {self.image_size} "
                 f"(set data.image_size={m['image_size']} or render again)"
             )
+        return shards
+
+    def _shard_dataset(
+        self, shards: SymsolShards, split: str, mask: np.ndarray | None = None
+    ) -> SymsolShardDataset:
+        """The ``train`` / ``val`` / ``test`` samples of opened ``shards`` (``mask``: the hold-out)."""
+        m = shards.meta
         return SymsolShardDataset(
             shards,
             shuffle=split == "train",
@@ -328,20 +339,17 @@ class SymsolDataModule(L.LightningDataModule):
         """The training set and the validation set (module docstring)."""
         if self.mode == "render":
             return self._split("train"), self._split("val")
-        train = self._split("train")
-        assert isinstance(train, SymsolShardDataset)
-        n = len(train.shards)
+        shards = self._open_shards("train")  # once: train and val share the opened folder
+        train = self._shard_dataset(shards, "train")
+        n = len(shards)
         kept = np.ones(n, dtype=bool) if train.keep is None else train.keep
         idx = np.flatnonzero(kept)
         n_val = min(self.max_val, max(1, round(self.val_fraction * len(idx))), len(idx) - 1)
         if n_val < 1:
-            raise ValueError(
-                f"{train.shards.path} has one training sample: nothing to hold out for validation"
-            )
+            raise ValueError(f"{shards.path} has one training sample: nothing to hold out for validation")
         val = np.zeros(n, dtype=bool)
         val[idx[-n_val:]] = True
-        train = self._split("train", mask=~val)
-        return train, self._split("val", mask=val)
+        return self._shard_dataset(shards, "train", mask=~val), self._shard_dataset(shards, "val", mask=val)
 
     def setup(self, stage: str | None = None) -> None:
         if stage in (None, "fit", "validate") and self.train is None:
