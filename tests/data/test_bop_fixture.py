@@ -20,6 +20,7 @@ from posediff.data.bop.fixture import (
     diameter,
     make_bop_fixture,
     make_model,
+    rot_z,
 )
 from posediff.data.bop.render import BopRenderer
 
@@ -244,12 +245,13 @@ def test_masks_boxes_and_counts(root: Path, models: dict[int, trimesh.Trimesh]) 
                 assert inf["visib_fract"] == pytest.approx(visib.sum() / mask.sum())
                 assert inf["bbox_obj"] == _bbox(mask) and inf["bbox_visib"] == _bbox(visib)
                 # the model's vertices project inside bbox_obj (give or take the 1.5 px a sharp
-                # corner can poke out between pixel centres), and every pixel of it is inside theirs
+                # corner can poke out between pixel centres), and every pixel of it is inside theirs;
+                # pixel (col, row) is sampled at image coordinates (col + 1/2, row + 1/2) (render.py)
                 R, t = _pose(e)
                 p = models[e["obj_id"]].vertices @ R.T + t
                 uv = p[:, :2] / p[:, 2:] * np.diag(K)[:2] + K[:2, 2]
                 x, y, w, h = inf["bbox_obj"]
-                lo, hi = np.array([x, y]), np.array([x + w - 1, y + h - 1])
+                lo, hi = np.array([x, y]) + 0.5, np.array([x + w, y + h]) - 0.5
                 where = (split, scene.name, im_id, k)
                 assert (uv.min(0) >= lo - 1.5).all() and (uv.max(0) <= hi + 1.5).all(), where
                 assert (uv.min(0) <= lo).all() and (uv.max(0) >= hi).all(), where
@@ -357,7 +359,8 @@ def test_renderer_intrinsics_background_and_pickling() -> None:
             ys, xs = np.nonzero(depth > 0)
             u = K[0, 0] * t[0] / t[2] + K[0, 2]
             v = K[1, 1] * t[1] / t[2] + K[1, 2]
-            assert abs(xs.mean() - u) < 0.6 and abs(ys.mean() - v) < 0.6, "p lands at K (R p + t)"
+            # pixel (col, row) is centred at image coordinates (col + 1/2, row + 1/2) (render.py)
+            assert abs(xs.mean() + 0.5 - u) < 0.1 and abs(ys.mean() + 0.5 - v) < 0.1, "p lands at K (R p + t)"
             assert depth[depth > 0].min() == pytest.approx(t[2] - 3.0, abs=0.01)
         bg = np.full((100, 160, 3), (10, 200, 30), np.uint8)
         out = r.render([(7, np.eye(3), [0.0, 0.0, 500.0])], K, background=bg)
@@ -376,6 +379,52 @@ def test_renderer_intrinsics_background_and_pickling() -> None:
         assert np.array_equal(r.render_depth(7, np.eye(3), [0.0, 0.0, 500.0], K), again)
         with pytest.raises(KeyError, match="unknown obj_id 8"):
             r.render_depth(8, np.eye(3), [0.0, 0.0, 500.0], K)
+    finally:
+        r.close()
+
+
+def _inside_polygon(px: np.ndarray, py: np.ndarray, poly: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Whether points lie inside a convex polygon (counter-clockwise or clockwise), and their distance
+    to its nearest edge (to leave out points on the boundary)."""
+    inside_pos = np.ones(px.shape, bool)
+    inside_neg = np.ones(px.shape, bool)
+    dist = np.full(px.shape, np.inf)
+    for a, b in zip(poly, np.roll(poly, -1, axis=0), strict=True):
+        e = b - a
+        cross = e[0] * (py - a[1]) - e[1] * (px - a[0])
+        inside_pos &= cross > 0
+        inside_neg &= cross < 0
+        dist = np.minimum(dist, np.abs(cross) / np.linalg.norm(e))
+    return inside_pos | inside_neg, dist
+
+
+def test_renderer_pixel_masks_equal_a_hand_projection() -> None:
+    """The BOP toolkit's camera convention (render.py): pixel (col, row) is covered exactly when the ray
+    through image coordinates (col + 1/2, row + 1/2) of K hits the model. A thin plate facing the camera,
+    turned about the optical axis, projects to a quadrilateral: its corners K (R p + t) / z."""
+    W, H = 160, 120
+    K = np.array([[520.0, 0.0, 71.3], [0.0, 430.0, 57.8], [0.0, 0.0, 1.0]])  # fx != fy, off-centre
+    r = BopRenderer(W, H)
+    r.add_model(5, trimesh.creation.box(extents=(40.0, 25.0, 1e-3)))
+    cols, rows = np.meshgrid(np.arange(W), np.arange(H))
+    try:
+        for angle, t in ((0.0, [0.0, 0.0, 500.0]), (0.43, [21.0, -13.0, 610.0]), (2.2, [-30.0, 17.5, 450.0])):
+            R = rot_z(angle)
+            t = np.asarray(t)
+            corners = np.array([[-20.0, -12.5, -5e-4], [20.0, -12.5, -5e-4], [20.0, 12.5, -5e-4], [-20.0, 12.5, -5e-4]])
+            cam = corners @ R.T + t
+            uv = (cam @ K.T)[:, :2] / cam[:, 2:]
+            depth = r.render_depth(5, R, t, K)
+            mask = depth > 0
+            hand, dist = _inside_polygon(cols + 0.5, rows + 0.5, uv)
+            clear = dist > 1e-3  # leave out pixel centres on an edge
+            assert clear.mean() > 0.99
+            assert np.array_equal(mask[clear], hand[clear]), f"angle {angle}: {np.sum(mask[clear] != hand[clear])} pixels differ"
+            assert hand.sum() > 200
+            # OpenCV's pixel centres (integer coordinates) are half a pixel away: many pixels differ
+            opencv, _ = _inside_polygon(cols.astype(float), rows.astype(float), uv)
+            assert np.sum(opencv != mask) > 20
+            assert np.allclose(depth[mask], t[2] - 5e-4, atol=0.01)
     finally:
         r.close()
 

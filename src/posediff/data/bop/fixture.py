@@ -518,7 +518,7 @@ def _train_pbr(
     renderer = scenes.renderer
     K_pbr = K.copy()
     K_pbr[0, 0] = K_pbr[1, 1] = 0.5 * (K[0, 0] + K[1, 1])
-    K_pbr[0, 2], K_pbr[1, 2] = (scenes.width - 1) / 2, (scenes.height - 1) / 2
+    K_pbr[0, 2], K_pbr[1, 2] = scenes.width / 2, scenes.height / 2  # the image centre (render.py)
     for scene_id in range(n_scenes):
         writer = _SceneWriter(root / "train_pbr" / f"{scene_id:06d}", ".jpg")
         world = scenes.pbr_world(rng, n_inst)

@@ -7,11 +7,16 @@ poses (x right, y down, z forward; a model point ``p`` lands at ``K (R p + t)``)
 the scene depth). :meth:`BopRenderer.render_depth` renders one object alone, depth only — what the
 VSD error needs for an estimated pose.
 
-Pixel convention: as OpenCV and BOP, integer pixel coordinates are pixel *centres* (the top-left
-pixel's centre is ``(0, 0)``). GL's window coordinates put pixel centres at ``i + 0.5``, so the
-principal point handed to the GL camera is ``(cx + 0.5, cy + 0.5)``. By default every pixel is
-sampled once, at its centre (pyrender's multisampling is switched off, see ``antialias``), so a
-pixel belongs to an object's mask exactly when its centre's ray hits the object.
+Pixel convention: the BOP toolkit's renderers' (``renderer_vispy``, ``renderer_cpp``): ``K`` is handed
+to GL as given, so a point that ``K`` projects to image coordinates ``(u, v)`` lands at GL window
+coordinates ``(u, v)`` (rows counted from the top), where pixel ``(col, row)`` spans
+``[col, col + 1) × [row, row + 1)`` and is sampled at its centre ``(col + ½, row + ½)``. By default every
+pixel is sampled once, at that centre (pyrender's multisampling is switched off, see
+``antialias``), so pixel ``(col, row)`` belongs to an object's mask exactly when the ray through
+image coordinates ``(col + ½, row + ½)`` hits the object. The real BOP datasets' depth images,
+masks and ``visib_fract`` were rendered this way, so posediff's VSD renders match them. (OpenCV's
+convention, pixel centres at integer coordinates, is half a pixel away; posediff's crops,
+:mod:`posediff.data.bop.roi`, use OpenCV's, as the images are resampled with it.)
 
 Shading: a grey matte material (T-LESS objects are texture-less grey; a colour per model is
 optional), flat-shaded, with a key light along the viewing direction and a weaker fill light from the
@@ -154,8 +159,8 @@ class _Gl:
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ValueError(f"K must have positive focal lengths, got fx={K[0, 0]}, fy={K[1, 1]}")
         self.camera.fx, self.camera.fy = float(K[0, 0]), float(K[1, 1])
-        # OpenCV pixel centres are integers; GL's are at i + 0.5 (module docstring).
-        self.camera.cx, self.camera.cy = float(K[0, 2]) + 0.5, float(K[1, 2]) + 0.5
+        # as the BOP toolkit: the principal point as given (module docstring, "Pixel convention")
+        self.camera.cx, self.camera.cy = float(K[0, 2]), float(K[1, 2])
 
     def place(self, instances: Sequence[tuple[int, Any, Any]]) -> list[Any]:
         """Pose one pool node per instance (hidden); returns the nodes in instance order."""
