@@ -267,6 +267,10 @@ class BopDataModule(L.LightningDataModule):
         self.skipped: list[Instance] = []
         #: all test targets (ground-truth instances the protocol scores)
         self.targets: list[Instance] = []
+        #: (scene_id, im_id, obj_id) → the target's ``inst_count`` (BOP19: how many of the
+        #: object's top-scored estimates in that image are matched)
+        self.inst_count: dict[tuple[int, int, int], int] = {}
+        self._targets_read: list[Instance] | None = None
         self.summary: dict[str, Any] = {}
 
     @property
@@ -360,7 +364,20 @@ class BopDataModule(L.LightningDataModule):
             )
         self.encoding.fit_stats(torch.cat(raws))
 
+    def read_targets(self) -> list[Instance]:
+        """Read the test split's ground truth the BOP19 protocol scores — :attr:`targets`,
+        :attr:`inst_count`, :attr:`skipped` — without making any dataset (no translation statistics
+        needed; ``posediff score`` uses it). Returns :attr:`targets`."""
+        if self._targets_read is None:
+            self._targets_read = self._read_test_targets()
+        return self.targets
+
     def _test_instances(self) -> list[Instance]:
+        self.read_targets()
+        assert self._targets_read is not None
+        return self._targets_read
+
+    def _read_test_targets(self) -> list[Instance]:
         split = self.root / self.test_split
         if self.targets_file:
             path = self.root / self.targets_file
@@ -373,9 +390,14 @@ class BopDataModule(L.LightningDataModule):
             if missing:
                 raise BopFormatError(f"{path} names images {missing[:3]}… that {split} does not have")
             self.targets = target_instances(all_inst.instances, targets)
+            self.inst_count = {(t.scene_id, t.im_id, t.obj_id): t.inst_count for t in targets}
         else:
             all_inst = BopSplit(self.root, self.test_split, self.models, obj_ids=self.obj_ids)
             self.targets = [i for i in all_inst.instances if i.visib_fract >= 0.1]
+            self.inst_count = {}
+            for i in self.targets:
+                key = (i.scene_id, i.im_id, i.obj_id)
+                self.inst_count[key] = self.inst_count.get(key, 0) + 1
         if self.max_test:
             self.targets = self.targets[: self.max_test]
         keep = [keep_instance(i, self.min_visible_px, 0.0) for i in self.targets]
