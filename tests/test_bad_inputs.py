@@ -187,6 +187,31 @@ def _run(env: Env) -> str:
     return f"hydra.run.dir={env.dir / 'run'}"
 
 
+def _score_csv(env: Env, field: int | None = None, value: str = "") -> str:
+    """A BOP19 CSV of the fixture's ground truth (one row per target instance) with field ``field`` of
+    its second row (line 3) replaced by ``value``; returns the ``csv=`` override."""
+    import json
+
+    lines = ["scene_id,im_id,obj_id,score,R,t,time"]
+    for t in json.loads((env.bop / "test_targets_bop19.json").read_text()):
+        gt = json.loads((env.bop / "test_primesense" / f"{t['scene_id']:06d}" / "scene_gt.json").read_text())
+        for g in gt[str(t["im_id"])]:
+            if g["obj_id"] == t["obj_id"]:
+                R, tt = " ".join(map(repr, g["cam_R_m2c"])), " ".join(map(repr, g["cam_t_m2c"]))
+                lines.append(f"{t['scene_id']},{t['im_id']},{g['obj_id']},1.0,{R},{tt},0.5")
+    if field is not None:
+        row = lines[2].split(",")
+        row[field] = value
+        lines[2] = ",".join(row)
+    path = env.dir / "method_bop-test.csv"
+    path.write_text("\n".join(lines) + "\n")
+    return f"csv={path}"
+
+
+def _score(env: Env, field: int | None = None, value: str = "") -> list[str]:
+    return ["score", _score_csv(env, field, value), f"data.root={env.bop}", "vsd=false", _run(env)]
+
+
 CASES = [
     # ---- checkpoints
     Case("ckpt_payload_eval", "refused, naming the key; the payload never runs",
@@ -271,6 +296,19 @@ CASES = [
          after=_no_checkpoints),
     Case("bop_missing_root", "the path and the command that makes a dataset",
          lambda e: ["fit", *BOP, f"data.root={e.dir / 'nothere'}", _run(e)], "make-bop"),
+    # ---- BOP19 results files (posediff score)
+    Case("score_missing_csv", "the path and the format expected",
+         lambda e: ["score", f"csv={e.dir / 'none.csv'}", f"data.root={e.bop}", _run(e)], "no such file"),
+    Case("score_unknown_object", "the file and line, the objects there are",
+         lambda e: _score(e, 2, "77"), "method_bop-test.csv:3: obj_id 77 is not in"),
+    Case("score_image_not_a_target", "the file and line; the image holds no target",
+         lambda e: _score(e, 1, "999"), "method_bop-test.csv:3: scene 1 image 999 holds no target"),
+    Case("score_R_of_8_numbers", "the file and line; R needs 9 numbers",
+         lambda e: _score(e, 4, "1 0 0 0 1 0 0 0"), "method_bop-test.csv:3: R has 8 numbers"),
+    Case("score_non_finite", "the file and line; non-finite numbers refused",
+         lambda e: _score(e, 5, "0 nan 600"), "method_bop-test.csv:3: non-finite"),
+    Case("score_not_a_bop_dataset", "the path and the command that makes a dataset",
+         lambda e: ["score", _score_csv(e), f"data.root={e.dir / 'nothere'}", _run(e)], "make-bop"),
     # ---- SYMSOL data
     Case("symsol_missing_root", "the path and the command that renders it",
          lambda e: ["fit", *SYMSOL, f"data.root={e.dir / 'nothere'}", _run(e)], "posediff data render"),

@@ -35,6 +35,9 @@ COMMANDS: dict[str, Command] = {
         "pose hypotheses, modes and plots for one image: posediff predict ckpt_path=CKPT image=IMG.png",
         "predict",
     ),
+    "score": Command(
+        "score a BOP19 results CSV (any method's) on a BOP dataset: posediff score csv=PATH data.root=DIR", "score"
+    ),
     "report": Command("one table from an eval multirun: posediff report dir=multirun/eval/<stamp>", "report"),
     "demo": Command(
         "render a small SYMSOL-T, train `quickstart` on the CPU, evaluate, predict: posediff demo [out=DIR] [fit overrides]",
@@ -159,6 +162,7 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
         "eval": tasks.evaluate_checkpoint,
         "predict": tasks.predict,
         "report": tasks.report,
+        "score": tasks.score,
         "data render": tasks.render_data,
         "data grid": tasks.render_grid,
         "data make-bop": tasks.make_bop,

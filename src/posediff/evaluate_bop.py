@@ -158,11 +158,14 @@ def check_estimates(
     estimates: Sequence[BopEstimate], datamodule: BopDataModule, where: Sequence[str] | None = None
 ) -> None:
     """Refuse, with one line naming the row, an estimate of an object the dataset's models do not
-    have or of an image that holds no target. ``where``: how to name each row (default ``row N``)."""
+    have or of an image that holds no target. ``where``: how to name each row (default: the row's own
+    ``where``, ``path:line`` when read by :func:`~posediff.metrics.bop19.read_bop19_csv`, else
+    ``row N``). An estimate of an object that is no target of its image is not refused: the
+    toolkit ignores it, and so does :func:`score_estimates` (``estimates_ignored``)."""
     images = {i.key[:2] for i in datamodule.targets}
     known = set(datamodule.models.obj_ids)
     for k, e in enumerate(estimates):
-        name = where[k] if where is not None else f"row {k + 1}"
+        name = where[k] if where is not None else (e.where or f"row {k + 1}")
         if e.obj_id not in known:
             ids = ", ".join(str(o) for o in sorted(known))
             raise ValueError(f"{name}: obj_id {e.obj_id} is not in {datamodule.models.info_path} (objects {ids})")
@@ -386,7 +389,13 @@ def score_estimates(
     rows = list(result["shapes"].values())
     mean_keys = [k for k in result["overall"] if k != "targets"]
     result["object_mean"] = {k: _nanmean([r[k] for r in rows]) for k in mean_keys}
-    result.update(targets=len(targets), estimates_scored=scored, estimates_ignored=total - scored, vsd=bool(vsd))
+    result.update(
+        targets=len(targets),
+        without_estimate=sum(len(g) for k, g in groups.items() if k not in by_group),
+        estimates_scored=scored,
+        estimates_ignored=total - scored,
+        vsd=bool(vsd),
+    )
     return result
 
 

@@ -77,17 +77,28 @@ def run_table(result: dict[str, Any]) -> str:
     header = ["object" if result.get("kind") == "bop" else "shape", *(h for _, h in cols)]
     body = [[shape, *(_fmt(m.get(k)) for k, _ in cols)] for shape, m in rows]
     steps = result.get("num_steps")
-    title = (
-        f"{result.get('sampler', 'sampler')}, {steps} steps, {result.get('num_samples')} hypotheses per "
-        f"input, {result.get('inputs', '?')} inputs; {result.get('seconds_per_input', math.nan):.3f} s per input\n\n"
-    )
+    if "csv" in result:  # posediff score: a results file, no sampler
+        title = (
+            f"{result['csv']}: {result.get('estimates_scored', 0) + result.get('estimates_ignored', 0)} "
+            f"estimates, {result.get('estimates_scored')} scored ({result.get('estimates_ignored')} ignored: "
+            f"beyond a target's inst_count, or of an object that is no target of its image); "
+            f"{result.get('seconds', math.nan):.2f} s\n\n"
+        )
+        missing = f"{result.get('without_estimate')} in an image and object without any estimate"
+    else:
+        title = (
+            f"{result.get('sampler', 'sampler')}, {steps} steps, {result.get('num_samples')} hypotheses per "
+            f"input, {result.get('inputs', '?')} inputs; {result.get('seconds_per_input', math.nan):.3f} s per input\n\n"
+        )
+        missing = f"{result.get('skipped')} without an estimate (too few visible pixels)"
     if result.get("kind") != "bop":
         return title + _markdown(header, body)
     note = (
-        f"BOP19 protocol: {result.get('targets')} targets, {result.get('skipped')} without an estimate "
-        f"(too few visible pixels: scored as misses){'' if result.get('vsd', True) else '; VSD not computed'}; "
-        "recalls in [0, 1]; overall = over all targets (the BOP toolkit), mean of objects = the paper's "
-        "per-object average\n\n"
+        f"BOP19 protocol: {result.get('targets')} targets, {missing}: misses"
+        f"{'' if result.get('vsd', True) else '; VSD not computed'}; per image and object the top "
+        "inst_count estimates by score, matched greedily to any of its instances (the BOP toolkit's "
+        "matching); recalls in [0, 1]; overall = over all targets (the BOP toolkit), mean of objects = the "
+        "paper's per-object average\n\n"
     )
     return title + note + _markdown(header, body) + "\nper-axis translation recall\n\n" + axis_table(result)
 

@@ -564,6 +564,66 @@ def evaluate_checkpoint(cfg: DictConfig) -> int:
     return 0
 
 
+def score(cfg: DictConfig) -> int:
+    """``posediff score csv=PATH data.root=DIR``: BOP19 scores of any results CSV on a BOP dataset's
+    test split (:func:`posediff.evaluate_bop.score_estimates`); ``metrics.json`` / ``metrics.md`` in
+    the run folder, as ``posediff eval``."""
+    import time
+
+    from ._io import atomic_write_json, atomic_write_text
+    from .evaluate_bop import check_estimates, score_estimates
+    from .metrics.bop19 import VSD_DELTAS, read_bop19_csv
+    from .report import run_table
+
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    start = time.perf_counter()
+    try:
+        csv = Path(str(cfg.csv))
+        if not csv.is_file():
+            raise FileNotFoundError(f"csv={csv}: no such file (a BOP19 results CSV: scene_id,im_id,obj_id,score,R,t,time)")
+        rows = read_bop19_csv(csv)
+        if not rows:
+            raise ValueError(f"{csv}: no estimates in the file")
+        if cfg.data is None or "_target_" not in cfg.data:
+            raise ValueError("data= must name a BOP data config (data=tless, the default) with data.root=DIR")
+        datamodule = instantiate(cfg.data)
+        if not hasattr(datamodule, "read_targets"):
+            raise ValueError(f"data={cfg.data._target_} is not a BOP dataset; posediff score needs one (data=tless)")
+        datamodule.read_targets()
+        check_estimates(rows, datamodule)
+        delta = cfg.vsd_delta
+        if delta is None:
+            name = datamodule.root.name.lower().replace("_", "").replace("-", "")
+            delta = VSD_DELTAS.get(name, 15.0)
+        if not float(delta) > 0:
+            raise ValueError(f"vsd_delta must be > 0 mm, got {delta}")
+    except Exception as e:  # noqa: BLE001
+        message = _data_error(e)
+        if message is None:
+            raise
+        print(f"posediff score: {message}", file=sys.stderr)
+        return 2
+    images = {i.key[:2] for i in datamodule.targets}
+    print(
+        f"BOP data {datamodule.root}, {datamodule.test_split}: {len(datamodule.targets)} targets in "
+        f"{len(images)} images; {len(rows)} estimates in {csv}"
+    )
+    result = score_estimates(datamodule, rows, vsd=bool(cfg.vsd), vsd_delta=float(delta))
+    result.update(
+        csv=str(csv),
+        seconds=time.perf_counter() - start,
+        vsd_delta=float(delta),
+        data={k: OmegaConf.to_container(cfg.data, resolve=True).get(k) for k in
+              ("root", "test_split", "targets", "models_dir", "eval_models_dir", "obj_ids")},
+    )  # fmt: skip
+    atomic_write_json(out_dir / "metrics.json", result)
+    table = run_table(result)
+    atomic_write_text(out_dir / "metrics.md", table)
+    print(table)
+    print(f"{_headline(result)}; metrics: {out_dir / 'metrics.json'}")
+    return 0
+
+
 def report(cfg: DictConfig) -> int:
     """``posediff report dir=<multirun folder>``: the jobs' metrics in one table (Table 4 layout)."""
     from .report import collect_sweep

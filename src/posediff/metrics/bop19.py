@@ -42,7 +42,7 @@ from __future__ import annotations
 import math
 from collections import defaultdict
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -504,6 +504,8 @@ class BopEstimate:
     R: np.ndarray
     t: np.ndarray
     time: float = -1.0
+    #: where the row came from, for messages (``read_bop19_csv``: ``"path:line"``); not compared
+    where: str = field(default="", compare=False, repr=False)
 
     def __post_init__(self) -> None:
         for name in ("scene_id", "im_id", "obj_id"):
@@ -600,6 +602,7 @@ def read_bop19_csv(path: str | Path) -> list[BopEstimate]:
                 np.array(R),
                 np.array(t),
                 float(fields[6]),
+                where=where,
             )
         except ValueError as exc:
             msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
