@@ -155,3 +155,43 @@ def test_object_mean_is_the_mean_of_the_object_rows(dm: BopDataModule) -> None:
     for key in ("AR_MSSD", "recall_trans@5cm", "recall_x@2cm"):
         assert res["object_mean"][key] == pytest.approx(float(np.mean([r[key] for r in rows])))
     assert "| mean of objects |" in run_table(res)
+
+
+def test_eval_and_score_agree_on_the_csv_eval_writes(dm: BopDataModule, bop_root: Path, tmp_path: Path) -> None:
+    """``posediff eval``'s scores and ``posediff score`` of the CSV it wrote are the same numbers."""
+    import json
+
+    from posediff.cli import main
+
+    res = evaluate_bop(Oracle(dm, shift_mm=12.0), dm, num_samples=3)
+    path = write_bop19_csv(tmp_path / "posediff_fixture-test.csv", res["estimates"])
+    assert all(e.score == 1.0 for e in read_bop19_csv(path))  # three equal hypotheses: one mode, weight 1
+    run = tmp_path / "score"
+    assert main(["score", f"csv={path}", f"data.root={bop_root}", f"hydra.run.dir={run}"]) == 0
+    scored = json.loads((run / "metrics.json").read_text())
+    assert (run / "metrics.md").read_text().startswith(str(path))
+    for row in ("overall", "object_mean"):
+        for key, value in res[row].items():
+            assert scored[row][key] == pytest.approx(value, abs=1e-12, nan_ok=True), (row, key)
+    assert scored["shapes"].keys() == res["shapes"].keys()
+    for obj, row in res["shapes"].items():
+        assert scored["shapes"][obj] == pytest.approx(row, abs=1e-12, nan_ok=True), obj
+    assert 0.0 < res["overall"]["AR"] < 1.0 and res["overall"]["recall_trans@2cm"] > 0.5
+    assert scored["matching"] == "bop19" and scored["estimates_ignored"] == 0
+
+
+def test_several_hypotheses_give_the_heaviest_mode_and_its_weight() -> None:
+    from posediff.evaluate_bop import best_hypothesis
+    from posediff.lie import SO3
+
+    g = torch.Generator().manual_seed(0)
+    A, B = SO3().exp(torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64)), torch.eye(3, dtype=torch.float64)
+    jitter = SO3().exp(0.01 * torch.randn(10, 3, generator=g, dtype=torch.float64))
+    R = torch.cat([A @ jitter[:7], B @ jitter[7:]])
+    t = torch.cat([torch.full((7, 3), 100.0), torch.full((3, 3), 100.0)]).double() + torch.randn(10, 3, generator=g).double()
+    Rb, tb, score = best_hypothesis(R, t)
+    assert score == pytest.approx(0.7)
+    assert np.degrees(np.arccos(np.clip((np.trace(Rb @ A.numpy().T) - 1) / 2, -1, 1))) < 1.0
+    assert np.abs(tb - 100.0).max() < 2.0
+    R1, t1, s1 = best_hypothesis(R[:1], t[:1])  # one hypothesis: itself, score 1
+    assert s1 == 1.0 and np.array_equal(R1, R[0].numpy()) and np.array_equal(t1, t[0].numpy())

@@ -14,10 +14,9 @@ the whole batch (one object); the camera matrix ``K`` may be ``(3, 3)`` or ``(B,
   ``models_info`` entry: the identity first, then each discrete symmetry (4×4, row-major), and each
   continuous one (``axis`` through ``offset``) discretised into ``n = ceil(π / max_sym_disc_step)``
   rotations by ``2π k / n`` — ``R_k = Rot(axis, 2πk/n)``, ``t_k = offset − R_k·offset`` — composed with
-  every discrete one: ``(R_c R_d, R_c t_d + t_c)``, k = 0 … n − 1. The BOP toolkit runs k from 1,
-  so its set for an object with a continuous symmetry lacks the identity (and ``R_d`` itself): a
-  perfect estimate of such an object has MSSD / MSPD 0 here and the error of the smallest turn,
-  2π/n, there (1.6 mm for a 74 mm cylinder) — the toolkit's scores can be slightly lower.
+  every discrete one: ``(R_c R_d, R_c t_d + t_c)``, k = 0 … n − 1 — the same set, in the same
+  order, as the BOP toolkit's ``misc.get_symmetry_transformations`` (which also runs k from 0, so
+  the identity and every ``R_d`` are members).
 * :func:`mssd` — Maximum Symmetry-aware Surface Distance (units of ``pts``):
   ``min_{S} max_{x ∈ pts} ‖(R_e x + t_e) − (R_g (R_S x + t_S) + t_g)‖``. With ``diameter`` given, the
   toolkit's short-cut: ``inf`` when ``‖t_e − t_g‖ ≥ diameter`` (the bounding spheres of radius

@@ -29,10 +29,12 @@ estimate is a miss); ``AR_VSD``, ``AR_MSSD``, ``AR_MSPD`` = the mean of their re
 the per-object recalls (and their plain mean, ``AR_obj_mean``) are reported next to it but are no part
 of the BOP score. With no target at all a recall is 0 (as the toolkit's).
 
-**Paired errors** (:func:`ar_from_paired_errors`): posediff predicts one pose per GT crop, so each
-target has at most one estimate, scored against its own GT only. With one instance per object and
-image this is exactly the toolkit's matching; with several instances of one object the toolkit could
-also match an estimate to a sibling instance (see :func:`average_recall` for full error matrices).
+**Full error matrices** (:func:`average_recall`): every estimate of an image and object against every
+target instance of that object in that image, then the matching above — the toolkit's scores; this
+is what ``posediff eval`` and ``posediff score`` use (:func:`posediff.evaluate_bop.score_estimates`).
+**Paired errors** (:func:`ar_from_paired_errors`): each target with at most one estimate scored
+against its own GT only — the toolkit's result only with one instance per object and image; with
+sibling instances an estimate could also match a sibling, which pairing cannot see.
 
 Units: translations and distances in mm (BOP), MSPD in pixels, angles in degrees.
 """
