@@ -129,7 +129,7 @@ def _toolkit(args: argparse.Namespace, root: Path, csv: Path, workdir: Path) -> 
         return None
     lines = out.stdout.strip().splitlines()
     seconds = float(lines[-1].split()[-1])
-    scores = json.loads("\n".join(lines[lines.index("{"):lines.index("}") + 1]))
+    scores = json.loads("\n".join(lines[lines.index("{") : lines.index("}") + 1]))
     return scores, seconds
 
 
@@ -139,7 +139,9 @@ def main() -> int:
     ap.add_argument("--toolkit", default=None, help="RUN.sh DATASET_PARENT CSV OUT_DIR (module docstring)")
     ap.add_argument("--toolkit-prepare", default=None, help="PREPARE.py SRC DST/tless (module docstring)")
     ap.add_argument("--quick", action="store_true", help="the small fixture and two cases only")
-    ap.add_argument("--skip-tless-toolkit", action="store_true", help="no toolkit run on the T-LESS-sized list")
+    ap.add_argument(
+        "--skip-tless-toolkit", action="store_true", help="no toolkit run on the T-LESS-sized list"
+    )
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "bop_score.json"))
     args = ap.parse_args()
     if bool(args.toolkit) != bool(args.toolkit_prepare):
@@ -152,7 +154,11 @@ def main() -> int:
     result = {
         "benchmark": "bop_score",
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
+        "machine": {
+            "platform": platform.platform(),
+            "cpus": os.cpu_count(),
+            "python": platform.python_version(),
+        },
         "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
         "rows": [],
     }
@@ -180,7 +186,8 @@ def main() -> int:
         result["rows"].append(row)
         atomic_write_json(args.out, result)
         ars = ", ".join(
-            f"{row['posediff'][k]:.4f}" + (f" / {row['toolkit'][k]:.4f}" if "toolkit" in row else "") for k, _ in KEYS
+            f"{row['posediff'][k]:.4f}" + (f" / {row['toolkit'][k]:.4f}" if "toolkit" in row else "")
+            for k, _ in KEYS
         )
         print(f"{name:<12} {case:<11} {row['targets']:>7} {row['estimates']:>6} {seconds:>10.2f} "
               f"{row.get('toolkit_seconds', float('nan')):>9.1f}  {ars}", flush=True)  # fmt: skip

@@ -155,7 +155,9 @@ def test_rows_of_unknown_objects_and_images_are_refused(dm: BopDataModule) -> No
     inst = dm.targets[0]
     check_estimates([_est(inst)], dm)
     bad_obj = BopEstimate(inst.scene_id, inst.im_id, 77, 1.0, inst.R, inst.t, 0.5)
-    with pytest.raises(ValueError, match=r"row 2: obj_id 77 is not in .*models_info.json \(objects 1, 2, 3\)"):
+    with pytest.raises(
+        ValueError, match=r"row 2: obj_id 77 is not in .*models_info.json \(objects 1, 2, 3\)"
+    ):
         check_estimates([_est(inst), bad_obj], dm)
     bad_im = BopEstimate(inst.scene_id, 999, inst.obj_id, 1.0, inst.R, inst.t, 0.5)
     with pytest.raises(ValueError, match="x.csv:7: scene 1 image 999 holds no target"):

@@ -157,7 +157,9 @@ def test_object_mean_is_the_mean_of_the_object_rows(dm: BopDataModule) -> None:
     assert "| mean of objects |" in run_table(res)
 
 
-def test_eval_and_score_agree_on_the_csv_eval_writes(dm: BopDataModule, bop_root: Path, tmp_path: Path) -> None:
+def test_eval_and_score_agree_on_the_csv_eval_writes(
+    dm: BopDataModule, bop_root: Path, tmp_path: Path
+) -> None:
     """``posediff eval``'s scores and ``posediff score`` of the CSV it wrote are the same numbers."""
     import json
 
@@ -188,7 +190,10 @@ def test_several_hypotheses_give_the_heaviest_mode_and_its_weight() -> None:
     A, B = SO3().exp(torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64)), torch.eye(3, dtype=torch.float64)
     jitter = SO3().exp(0.01 * torch.randn(10, 3, generator=g, dtype=torch.float64))
     R = torch.cat([A @ jitter[:7], B @ jitter[7:]])
-    t = torch.cat([torch.full((7, 3), 100.0), torch.full((3, 3), 100.0)]).double() + torch.randn(10, 3, generator=g).double()
+    t = (
+        torch.cat([torch.full((7, 3), 100.0), torch.full((3, 3), 100.0)]).double()
+        + torch.randn(10, 3, generator=g).double()
+    )
     Rb, tb, score = best_hypothesis(R, t)
     assert score == pytest.approx(0.7)
     assert np.degrees(np.arccos(np.clip((np.trace(Rb @ A.numpy().T) - 1) / 2, -1, 1))) < 1.0

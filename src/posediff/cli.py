@@ -36,7 +36,8 @@ COMMANDS: dict[str, Command] = {
         "predict",
     ),
     "score": Command(
-        "score a BOP19 results CSV (any method's) on a BOP dataset: posediff score csv=PATH data.root=DIR", "score"
+        "score a BOP19 results CSV (any method's) on a BOP dataset: posediff score csv=PATH data.root=DIR",
+        "score",
     ),
     "report": Command("one table from an eval multirun: posediff report dir=multirun/eval/<stamp>", "report"),
     "demo": Command(

@@ -73,7 +73,9 @@ def best_hypothesis(R: torch.Tensor, t: torch.Tensor) -> tuple[np.ndarray, np.nd
 
     x = torch.zeros((R.shape[0], 4, 4), dtype=torch.float64)
     x[:, :3, :3], x[:, :3, 3], x[:, 3, 3] = R.double(), t.double(), 1.0
-    m = modes(x, get_group("r3so3"), radius_deg=MODE_RADIUS_DEG, translation_radius=MODE_TRANSLATION_RADIUS_MM)
+    m = modes(
+        x, get_group("r3so3"), radius_deg=MODE_RADIUS_DEG, translation_radius=MODE_TRANSLATION_RADIUS_MM
+    )
     pose = m.poses[0]
     return pose[:3, :3].numpy(), pose[:3, 3].numpy(), float(m.weights[0])
 
@@ -120,7 +122,6 @@ def predict_targets(
     return estimates, run.summary()
 
 
-
 def _nanmean(values: Sequence[float]) -> float:
     """The mean of the non-NaN values; NaN when there are none (without numpy's warning)."""
     v = np.asarray(values, dtype=np.float64)
@@ -144,8 +145,13 @@ def estimates_of_predictions(
             continue
         rows.append(
             BopEstimate(
-                inst.scene_id, inst.im_id, inst.obj_id, float(est.get("score", 1.0)),
-                np.asarray(est["R"]), np.asarray(est["t"]), per_image[inst.key[:2]],
+                inst.scene_id,
+                inst.im_id,
+                inst.obj_id,
+                float(est.get("score", 1.0)),
+                np.asarray(est["R"]),
+                np.asarray(est["t"]),
+                per_image[inst.key[:2]],
             )  # fmt: skip
         )
     missing = set(predictions) - set(by_key)
@@ -168,7 +174,9 @@ def check_estimates(
         name = where[k] if where is not None else (e.where or f"row {k + 1}")
         if e.obj_id not in known:
             ids = ", ".join(str(o) for o in sorted(known))
-            raise ValueError(f"{name}: obj_id {e.obj_id} is not in {datamodule.models.info_path} (objects {ids})")
+            raise ValueError(
+                f"{name}: obj_id {e.obj_id} is not in {datamodule.models.info_path} (objects {ids})"
+            )
         if (e.scene_id, e.im_id) not in images:
             raise ValueError(
                 f"{name}: scene {e.scene_id} image {e.im_id} holds no target of "

@@ -580,7 +580,9 @@ def score(cfg: DictConfig) -> int:
     try:
         csv = Path(str(cfg.csv))
         if not csv.is_file():
-            raise FileNotFoundError(f"csv={csv}: no such file (a BOP19 results CSV: scene_id,im_id,obj_id,score,R,t,time)")
+            raise FileNotFoundError(
+                f"csv={csv}: no such file (a BOP19 results CSV: scene_id,im_id,obj_id,score,R,t,time)"
+            )
         rows = read_bop19_csv(csv)
         if not rows:
             raise ValueError(f"{csv}: no estimates in the file")
@@ -588,7 +590,9 @@ def score(cfg: DictConfig) -> int:
             raise ValueError("data= must name a BOP data config (data=tless, the default) with data.root=DIR")
         datamodule = instantiate(cfg.data)
         if not hasattr(datamodule, "read_targets"):
-            raise ValueError(f"data={cfg.data._target_} is not a BOP dataset; posediff score needs one (data=tless)")
+            raise ValueError(
+                f"data={cfg.data._target_} is not a BOP dataset; posediff score needs one (data=tless)"
+            )
         datamodule.read_targets()
         check_estimates(rows, datamodule)
         delta = cfg.vsd_delta

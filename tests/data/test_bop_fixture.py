@@ -411,7 +411,9 @@ def test_renderer_pixel_masks_equal_a_hand_projection() -> None:
         for angle, t in ((0.0, [0.0, 0.0, 500.0]), (0.43, [21.0, -13.0, 610.0]), (2.2, [-30.0, 17.5, 450.0])):
             R = rot_z(angle)
             t = np.asarray(t)
-            corners = np.array([[-20.0, -12.5, -5e-4], [20.0, -12.5, -5e-4], [20.0, 12.5, -5e-4], [-20.0, 12.5, -5e-4]])
+            corners = np.array(
+                [[-20.0, -12.5, -5e-4], [20.0, -12.5, -5e-4], [20.0, 12.5, -5e-4], [-20.0, 12.5, -5e-4]]
+            )
             cam = corners @ R.T + t
             uv = (cam @ K.T)[:, :2] / cam[:, 2:]
             depth = r.render_depth(5, R, t, K)
@@ -419,7 +421,9 @@ def test_renderer_pixel_masks_equal_a_hand_projection() -> None:
             hand, dist = _inside_polygon(cols + 0.5, rows + 0.5, uv)
             clear = dist > 1e-3  # leave out pixel centres on an edge
             assert clear.mean() > 0.99
-            assert np.array_equal(mask[clear], hand[clear]), f"angle {angle}: {np.sum(mask[clear] != hand[clear])} pixels differ"
+            assert np.array_equal(mask[clear], hand[clear]), (
+                f"angle {angle}: {np.sum(mask[clear] != hand[clear])} pixels differ"
+            )
             assert hand.sum() > 200
             # OpenCV's pixel centres (integer coordinates) are half a pixel away: many pixels differ
             opencv, _ = _inside_polygon(cols.astype(float), rows.astype(float), uv)
