@@ -72,9 +72,10 @@ bench-sampler: ## time per denoising step, network vs group math (writes benchma
 notebooks: ## run the notebooks in fast mode
 	$(PY) -m pytest -q -m notebooks tests/test_notebooks.py
 
-lint: ## ruff check + format check
+lint: ## ruff check + format check + mypy (lie/, diffusion/, symmetry, metrics/; pyproject [tool.mypy])
 	$(PY) -m ruff check src tests benchmarks notebooks
 	$(PY) -m ruff format --check src tests benchmarks notebooks
+	$(PY) -m mypy
 
 clean: ## remove caches and outputs (keeps .venv)
 	rm -rf .pytest_cache outputs multirun build dist

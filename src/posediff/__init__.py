@@ -11,6 +11,12 @@ from .lie import SO3 as SO3
 from .lie import LieGroup as LieGroup
 from .lie import get_group as get_group
 
-__version__ = "0.1.0"
+try:  # the one place the version is written is pyproject.toml
+    from importlib.metadata import PackageNotFoundError as _NotFound
+    from importlib.metadata import version as _version
+
+    __version__ = _version("posediff")
+except _NotFound:  # pragma: no cover - a source tree that was never installed
+    __version__ = "0+unknown"
 
 __all__ = ["LieGroup", "SO3", "R3SO3", "SE3", "SE2", "get_group", "__version__"]

@@ -110,11 +110,11 @@ def _prepare(omega: Tensor | float, eps: Tensor | float) -> tuple[Tensor, Tensor
         eps = torch.as_tensor(eps, dtype=omega.dtype, device=omega.device)
     dtype = torch.promote_types(omega.dtype, eps.dtype) if eps.is_floating_point() else omega.dtype
     work = torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype
-    omega, eps = torch.broadcast_tensors(omega.to(work), eps.to(work))
+    om, ep = torch.broadcast_tensors(omega.to(work), eps.to(work))
     # f is even and 2π-periodic in ω: fold into [0, π] (a no-op, gradient 1, on [0, π]).
-    w = torch.remainder(omega.abs(), _TWO_PI)
+    w = torch.remainder(om.abs(), _TWO_PI)
     w = torch.where(w > math.pi, _TWO_PI - w, w)
-    return w, eps, dtype
+    return w, ep, dtype
 
 
 def _log_x_over_sin_x(x: Tensor) -> Tensor:
@@ -330,7 +330,7 @@ def _quantile_rows(sigmas: Tensor, u: Tensor, num_omega: int = TABLE_NUM_OMEGA) 
         # per-row grid ω = ω_max t³ on [0, ω_max], ω_max = min(π, 12σ) (the mass beyond 12σ is < 1e-30)
         w_max = (TABLE_OMEGA_MAX_SIGMAS * rows).clamp_max(math.pi).unsqueeze(-1)
         omega = w_max * t**3
-        eps = eps_from_sigma(rows).unsqueeze(-1).expand_as(omega)
+        eps = torch.as_tensor(eps_from_sigma(rows)).unsqueeze(-1).expand_as(omega)
         closed = rows < EPS_SWITCH**0.5 * math.sqrt(2.0)  # ε = σ²/2 < 1
         log_f = torch.empty_like(omega)  # each row by its "auto" branch only
         log_f[closed] = _log_f_closed_form(omega[closed], eps[closed])

@@ -38,7 +38,7 @@ def _bernoulli(n_max: int) -> list[Fraction]:
     for m in range(n_max + 1):
         b[m] = Fraction(1)
         if m:
-            b[m] = -sum(math.comb(m + 1, k) * b[k] for k in range(m)) / (m + 1)
+            b[m] = -sum((math.comb(m + 1, k) * b[k] for k in range(m)), Fraction(0)) / (m + 1)
     return b
 
 

@@ -280,7 +280,7 @@ class LieGroup(Registered, family=True):
         # The fused path is for inference-sized work; under autograd the eager kernels run (they
         # are differentiable everywhere, and compiled backward graphs cannot be retained).
         if self.compiled and not (torch.is_grad_enabled() and any(a.requires_grad for a in args)):
-            fn = _compiled(type(self), op)
+            fn = _compiled(type(self), op)  # type: ignore[arg-type]  # classes hash by identity
         return fn(*args)
 
     def _tangent(self, xi: Tensor, op: str) -> Tensor:
@@ -310,7 +310,7 @@ def _compiled(cls: type[LieGroup], op: str) -> Callable[..., Tensor]:
     Inductor's CPU tiling heuristics leave kernels that read ``(*b, 3, 3)`` entries with stride 9
     unvectorised (measured: SO3 log 30 ms → 4–8 ms at N = 10⁶ with them off), hence the option.
     """
-    options = {"cpp.enable_tiling_heuristics": False}
+    options: dict[str, str | int | bool | Callable[..., Any]] = {"cpp.enable_tiling_heuristics": False}
     return torch.compile(getattr(cls, "_" + op), dynamic=None, fullgraph=True, options=options)  # type: ignore[no-any-return]
 
 

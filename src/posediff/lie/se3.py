@@ -14,6 +14,8 @@ Unlike SO3 and R3SO3, ``J_r⁻ᵀ(z) ≠ J_l⁻¹(z)`` on coupled motions (paper
 paper trains SE(3) with the surrogate score −z/σ² (Eq. 12).
 """
 
+from typing import cast
+
 import torch
 from torch import Tensor
 
@@ -32,7 +34,17 @@ from ._pose import (
     uniform_pose,
 )
 from .base import LieGroup
-from .so3 import cross, log_so3_entries, matmul3, matvec3, quadratic_entries, quadratic_form, skew, theta2_of
+from .so3 import (
+    Vec3,
+    cross,
+    log_so3_entries,
+    matmul3,
+    matvec3,
+    quadratic_entries,
+    quadratic_form,
+    skew,
+    theta2_of,
+)
 
 
 def q_block(rho: Tensor, phi: Tensor) -> Tensor:
@@ -61,7 +73,7 @@ class SE3(LieGroup, name="se3"):
     @classmethod
     def _exp(cls, xi: Tensor) -> Tensor:
         e = xi.unbind(-1)
-        rho, phi = e[:3], e[3:]
+        rho, phi = cast(Vec3, e[:3]), cast(Vec3, e[3:])
         ang = Angle(theta2_of(phi))
         a, b, c = ang.A(), ang.B(), ang.C()
         w = cross(phi, rho)

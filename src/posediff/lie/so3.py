@@ -15,6 +15,7 @@ The helpers in this module are shared by R3SO3, SE3 and the score code.
 """
 
 from collections.abc import Sequence
+from typing import cast
 
 import torch
 from torch import Tensor
@@ -93,7 +94,7 @@ def quadratic_entries(phi: Vec3, a: Tensor, b: Tensor) -> Mat3:
 
 def quadratic_form(phi: Tensor, a: Tensor, b: Tensor) -> Tensor:
     """``I + a K + b K²`` as ``(*b, 3, 3)``."""
-    return stack_entries(quadratic_entries(phi.unbind(-1), a, b), 3, 3)
+    return stack_entries(quadratic_entries(cast(Vec3, phi.unbind(-1)), a, b), 3, 3)
 
 
 def exp_so3_entries(phi: Vec3) -> Mat3:
@@ -102,7 +103,7 @@ def exp_so3_entries(phi: Vec3) -> Mat3:
 
 
 def exp_so3(phi: Tensor) -> Tensor:
-    return stack_entries(exp_so3_entries(phi.unbind(-1)), 3, 3)
+    return stack_entries(exp_so3_entries(cast(Vec3, phi.unbind(-1))), 3, 3)
 
 
 def left_jacobian_so3(phi: Tensor) -> Tensor:

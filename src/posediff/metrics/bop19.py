@@ -337,8 +337,8 @@ def average_recall(groups: Iterable[ImageObjectErrors], protocol: Bop19Protocol 
                 if name == "mssd"
                 else (protocol.reference_width / float(g.image_width)) * a
             )
-            m = match(s, a, np.asarray(ths), gt_valid=valid, max_estimates=top)
-            rows[name].append(m.gt_matched.T)  # (G, n_k)
+            found = match(s, a, np.asarray(ths), gt_valid=valid, max_estimates=top)
+            rows[name].append(found.gt_matched.T)  # (G, n_k)
         targets.append(valid)
         ids.append(np.full(G, g.obj_id))
     for name in ("vsd", "mssd", "mspd"):
