@@ -177,7 +177,12 @@ def uniform_rotation(
     shape: tuple[int, ...], generator: torch.Generator | None, device: torch.device, dtype: torch.dtype
 ) -> Tensor:
     """Haar-uniform rotations: a normalised Gaussian quaternion, as a matrix."""
-    q = torch.randn(*shape, 4, generator=generator, device=device, dtype=dtype)
+    return quaternion_matrix(torch.randn(*shape, 4, generator=generator, device=device, dtype=dtype))
+
+
+def quaternion_matrix(q: Tensor) -> Tensor:
+    """The rotation ``(*b, 3, 3)`` of quaternions ``q = (w, x, y, z)`` ``(*b, 4)``, normalised first (any
+    non-zero scale; a standard-normal ``q`` gives a Haar-uniform rotation)."""
     q = q / q.norm(dim=-1, keepdim=True)
     w, x, y, z = q.unbind(-1)
     entries = [

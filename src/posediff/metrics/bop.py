@@ -46,10 +46,11 @@ points (tens of MB per temporary), e.g. S = 630 symmetries of a continuous objec
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
+
+from ..symmetry import SymmetrySet
 
 _CHUNK_POINTS = 1 << 20  # (pose, symmetry, point) triples per chunk: a (C, N, 3) float64 array ≈ 24 MB
 _CHUNK_PIXELS = 1 << 21  # pixels per VSD chunk: a float64 map ≈ 16 MB
@@ -107,9 +108,12 @@ def _points(pts: Any) -> np.ndarray:
 
 
 def _syms(syms: Any) -> tuple[np.ndarray, np.ndarray]:
-    """``(R_S (S, 3, 3), t_S (S, 3))`` from :func:`symmetry_transforms`' pair, or ``None`` (identity)."""
+    """``(R_S (S, 3, 3), t_S (S, 3))`` from a :class:`~posediff.symmetry.SymmetrySet` (discretised at
+    BOP's 0.01), :func:`symmetry_transforms`' pair, or ``None`` (identity)."""
     if syms is None:
         return np.eye(3)[None], np.zeros((1, 3))
+    if isinstance(syms, SymmetrySet):
+        return syms.transforms()
     if len(syms) != 2:
         raise ValueError("syms must be the pair (R (S, 3, 3), t (S, 3)) returned by symmetry_transforms")
     Rs, ts = _np(syms[0]).reshape(-1, 3, 3), _np(syms[1]).reshape(-1, 3)
@@ -138,45 +142,14 @@ def _out(x: np.ndarray, batched: bool) -> np.ndarray | float:
     return x if batched else float(x[0])
 
 
-def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    a = np.asarray(axis, dtype=np.float64)
-    a = a / np.linalg.norm(a)
-    K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-    return np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * (K @ K)
-
-
 def symmetry_transforms(
     model_info: dict[str, Any], max_sym_disc_step: float = 0.01
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(R (S, 3, 3), t (S, 3))``: the BOP symmetry set of a ``models_info`` entry (module docstring);
-    ``t`` in the units of the model (mm)."""
-    if max_sym_disc_step <= 0:
-        raise ValueError(f"max_sym_disc_step must be > 0, got {max_sym_disc_step}")
-    disc_R, disc_t = [np.eye(3)], [np.zeros(3)]
-    for k, sym in enumerate(model_info.get("symmetries_discrete", [])):
-        m = _np(sym)
-        if m.size != 16:
-            raise ValueError(f"symmetries_discrete[{k}] has {m.size} numbers, not 16 (a row-major 4×4)")
-        m = m.reshape(4, 4)
-        disc_R.append(m[:3, :3])
-        disc_t.append(m[:3, 3])
-    cont_R, cont_t = [], []
-    for sym in model_info.get("symmetries_continuous", []):
-        axis = _np(sym["axis"])
-        offset = _np(sym.get("offset", [0.0, 0.0, 0.0]))
-        n = int(math.ceil(math.pi / max_sym_disc_step))
-        for i in range(n):
-            R = _rotation(axis, 2.0 * math.pi * i / n)
-            cont_R.append(R)
-            cont_t.append(offset - R @ offset)
-    if not cont_R:
-        return np.stack(disc_R), np.stack(disc_t)
-    Rs, ts = [], []
-    for Rd, td in zip(disc_R, disc_t, strict=True):
-        for Rc, tc in zip(cont_R, cont_t, strict=True):
-            Rs.append(Rc @ Rd)
-            ts.append(Rc @ td + tc)
-    return np.stack(Rs), np.stack(ts)
+    ``t`` in the units of the model (mm). Shorthand for
+    ``SymmetrySet.from_models_info(model_info).transforms(max_sym_disc_step)``
+    (:class:`posediff.symmetry.SymmetrySet`)."""
+    return SymmetrySet.from_models_info(model_info).transforms(max_sym_disc_step)
 
 
 def _apply(P: np.ndarray, A: np.ndarray, c: np.ndarray) -> np.ndarray:

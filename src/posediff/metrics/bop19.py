@@ -51,6 +51,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .._io import atomic_write_text
+from ..symmetry import SymmetrySet, min_angle_deg
 from .bop import _np
 
 
@@ -366,10 +367,13 @@ def average_recall(groups: Iterable[ImageObjectErrors], protocol: Bop19Protocol 
 
 
 def _sym_rotations(syms: Any) -> np.ndarray:
-    """``R_S (S, 3, 3)`` of one symmetry set: None (identity), the ``(R_S, t_S)`` tuple of
+    """``R_S (S, 3, 3)`` of one symmetry set: None (identity), a :class:`~posediff.symmetry.SymmetrySet`
+    (discretised at BOP's 0.01), the ``(R_S, t_S)`` tuple of
     :func:`~posediff.metrics.bop.symmetry_transforms`, or the rotations alone."""
     if syms is None:
         return np.eye(3)[None]
+    if isinstance(syms, SymmetrySet):
+        return syms.transforms()[0]
     if isinstance(syms, tuple) and len(syms) == 2:
         syms = syms[0]  # only the rotations enter the rotation error
     R = _np(syms)
@@ -380,6 +384,8 @@ def _sym_rotations(syms: Any) -> np.ndarray:
 
 def _sym_translations(syms: Any) -> np.ndarray:
     """``t_S (S, 3)`` of one symmetry set (zeros when it gives rotations only, or for None)."""
+    if isinstance(syms, SymmetrySet):
+        return syms.transforms()[1]
     if isinstance(syms, tuple) and len(syms) == 2:
         return _np(syms[1]).reshape(-1, 3)
     return np.zeros((len(_sym_rotations(syms)), 3))
@@ -409,8 +415,9 @@ def symmetric_translation_deltas(t_est: Any, R_gt: Any, t_gt: Any, syms: Any = N
 def symmetric_rotation_errors_deg(R_est: Any, R_gt: Any, syms: Any = None) -> np.ndarray:
     """``min_{S} ∠(R_est (R_gt R_S)ᵀ)`` in degrees, ``(N,)``, for ``R (N, 3, 3)`` (or ``(3, 3)``).
 
-    ``syms``: None (no symmetry); ONE set for all targets — the ``(R_S, t_S)`` tuple of
-    :func:`~posediff.metrics.bop.symmetry_transforms` (``t_S`` is ignored) or an array ``R_S (S, 3, 3)``;
+    ``syms``: None (no symmetry); ONE set for all targets — a :class:`~posediff.symmetry.SymmetrySet`,
+    the ``(R_S, t_S)`` tuple of :func:`~posediff.metrics.bop.symmetry_transforms` (``t_S`` is ignored)
+    or an array ``R_S (S, 3, 3)``;
     or a ``list`` of N such sets, one per target (a set object repeated in the list is evaluated in
     one go). Continuous symmetries enter as their discretised set, so the error can exceed the exact
     one by up to half a discretisation step."""
@@ -427,15 +434,9 @@ def symmetric_rotation_errors_deg(R_est: Any, R_gt: Any, syms: Any = None) -> np
     else:
         groups[0] = (syms, list(range(N)))
     out = np.empty(N)
-    M = np.einsum("nji,njk->nik", Rg, Re)  # R_gtᵀ R_est; tr(R_est R_Sᵀ R_gtᵀ) = Σ (R_gtᵀ R_est) ⊙ R_S
-    for s, idx in groups.values():
-        RS = _sym_rotations(s)
-        idx_a = np.asarray(idx, dtype=np.int64)
-        step = max(1, (1 << 22) // len(RS))
-        for lo in range(0, len(idx_a), step):
-            sel = idx_a[lo : lo + step]
-            tr = np.einsum("nij,sij->ns", M[sel], RS).max(axis=1)
-            out[sel] = np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
+    for s, idx in groups.values():  # the smallest angle over a set: posediff.symmetry.min_angle_deg
+        sel = np.asarray(idx, dtype=np.int64)
+        out[sel] = min_angle_deg(Re[sel], Rg[sel], _sym_rotations(s))
     return out
 
 

@@ -85,16 +85,13 @@ def rot_z(a: float) -> np.ndarray:
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
-    """Uniform on SO(3) (a normalised Gaussian quaternion)."""
-    q = rng.standard_normal(4)
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    """Uniform on SO(3): a normalised Gaussian quaternion (:func:`posediff.lie.so3.quaternion_matrix`,
+    the group's own sampler), drawn from the fixture's numpy generator."""
+    import torch
+
+    from ...lie.so3 import quaternion_matrix
+
+    return quaternion_matrix(torch.from_numpy(rng.standard_normal(4))).numpy()
 
 
 def _axis_rotations() -> list[np.ndarray]:

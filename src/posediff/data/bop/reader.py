@@ -48,6 +48,8 @@ from typing import Any
 
 import numpy as np
 
+from ...symmetry import SymmetrySet
+
 #: what ``posediff data make-bop`` makes; the README's T-LESS section shows the real download.
 MAKE_HINT = "posediff data make-bop out=<dir> makes a small one; see the README for T-LESS"
 
@@ -337,21 +339,23 @@ class BopModels:
         """``(N, 3)`` float64 vertices of the evaluation model (mm): the BOP metrics' point set."""
         return np.asarray(self.mesh(int(obj_id), True).vertices, dtype=np.float64)
 
+    def symmetry_set(self, obj_id: int, evaluation: bool = False) -> SymmetrySet:
+        """The object's :class:`~posediff.symmetry.SymmetrySet` (from ``models_info``; of the evaluation
+        models with ``evaluation``)."""
+        return _symmetry_set(self, int(obj_id), bool(evaluation))
+
     def symmetries(
         self, obj_id: int, max_sym_disc_step: float = 0.01, evaluation: bool = False
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The BOP symmetry set ``(R (S, 3, 3), t (S, 3))`` of an object
-        (:func:`posediff.metrics.bop.symmetry_transforms`), of the evaluation models with ``evaluation``."""
-        return _symmetries(self, int(obj_id), float(max_sym_disc_step), bool(evaluation))
+        """The discretised BOP symmetry set ``(R (S, 3, 3), t (S, 3))`` of an object
+        (:meth:`SymmetrySet.transforms`), of the evaluation models with ``evaluation``."""
+        return self.symmetry_set(obj_id, evaluation).transforms(float(max_sym_disc_step))
 
 
 @functools.cache
-def _symmetries(
-    models: BopModels, obj_id: int, step: float, evaluation: bool
-) -> tuple[np.ndarray, np.ndarray]:
-    from ...metrics.bop import symmetry_transforms
-
-    return symmetry_transforms((models.eval_info if evaluation else models.info)[obj_id], step)
+def _symmetry_set(models: BopModels, obj_id: int, evaluation: bool) -> SymmetrySet:
+    info = models.eval_info if evaluation else models.info
+    return SymmetrySet.from_models_info(info[obj_id], name=f"obj_{obj_id:06d}")
 
 
 # ------------------------------------------------------------------------------------ image checks

@@ -43,8 +43,8 @@ import math
 import torch
 from torch import Tensor
 
-from .lie._numerics import safe_sqrt
-from .lie.so3 import unskew
+from ..lie._numerics import safe_sqrt
+from ..lie.so3 import unskew
 
 SHAPES: tuple[str, ...] = ("tet", "cube", "icosa", "cone", "cyl")
 
@@ -354,7 +354,7 @@ def invariant_embedding(shape: str, R: Tensor) -> Tensor:
 
 @functools.lru_cache(maxsize=8)
 def _embedding_grid(shape: str, n: int) -> tuple[Tensor, Tensor]:
-    from .lie import SO3
+    from ..lie import SO3
 
     grid = SO3().sample_uniform((n,), generator=torch.Generator().manual_seed(20240601), dtype=torch.float64)
     return grid, invariant_embedding(shape, grid)
@@ -366,7 +366,7 @@ def decode_embedding(shape: str, phi: Tensor, *, grid_size: int = 4096, rounds: 
     ``grid_size`` fixed Haar-random rotations (≈ 10° apart at 4096), then ``rounds`` times the best of
     that rotation and 48 turns about fixed directions, each round at half the angle of the last
     (12° … 0.4° for 6 rounds). Exact inputs come back to ≈ 0.3°; a few ms for a batch."""
-    from .lie import SO3
+    from ..lie import SO3
 
     grid, table = _embedding_grid(_check_shape(shape), int(grid_size))
     target = phi.detach().to(torch.float32)
