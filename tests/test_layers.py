@@ -74,3 +74,27 @@ def test_data_never_imports_metrics() -> None:
         if n.startswith("posediff.metrics")
     ]
     assert bad == []
+
+
+def test_importing_posediff_changes_no_environment_and_loads_no_fixture() -> None:
+    """Importing posediff (its libraries imported first, which set variables of their own) leaves the
+    environment as it was — the GL defaults are set by the first renderer — and the BOP fixture
+    generator is loaded only when one of its names is asked for."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import os, sys\n"
+        "import torch, torchvision, lightning, hydra, kornia, trimesh, cv2, matplotlib\n"
+        "before = dict(os.environ)\n"
+        "import posediff, posediff.data.bop, posediff.data.symsol, posediff.tasks, posediff.cli\n"
+        "import posediff.evaluate_bop, posediff.predict, posediff.metrics\n"
+        "changed = sorted(k for k in set(before) | set(os.environ) if before.get(k) != os.environ.get(k))\n"
+        "print(changed, 'posediff.data.bop.fixture' in sys.modules)\n"
+        "from posediff.data.bop import make_bop_fixture\n"
+        "print(make_bop_fixture.__module__)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("PYOPENGL_PLATFORM", "LP_NUM_THREADS")}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.splitlines() == ["[] False", "posediff.data.bop.fixture"], out.stdout + out.stderr

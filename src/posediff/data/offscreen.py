@@ -4,12 +4,15 @@ Two traps of offscreen GL next to PyTorch are handled here (``../shared/docs/ins
 
 * importing ``triton`` after a Mesa GL context exists segfaults — :func:`prepare_gl` imports it
   first (if installed);
-* forked ``DataLoader`` workers hang if the parent made a GL context — ``LP_NUM_THREADS=0`` is set
-  here, and renderers create their context lazily, in the process that renders.
+* forked ``DataLoader`` workers hang if the parent made a GL context — :func:`prepare_gl` sets
+  ``LP_NUM_THREADS=0`` (unless set), and renderers create their context lazily, in the process that
+  renders.
 
-``PYOPENGL_PLATFORM`` defaults to ``egl`` (Mesa's software EGL on a CPU machine, NVIDIA's on a
-GPU machine); set it before importing posediff to override. :func:`release` frees one pyrender
-``OffscreenRenderer`` without terminating the process-wide EGL display.
+:func:`prepare_gl` also makes ``PYOPENGL_PLATFORM`` default to ``egl`` (Mesa's software EGL on a CPU
+machine, NVIDIA's on a GPU machine); set it yourself to override. Nothing is changed in the
+environment when posediff is imported: only when a renderer is about to make its first GL context.
+:func:`release` frees one pyrender ``OffscreenRenderer`` without terminating the process-wide EGL
+display.
 """
 
 from __future__ import annotations
@@ -20,9 +23,6 @@ from typing import Any
 
 import numpy as np
 
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-os.environ.setdefault("LP_NUM_THREADS", "0")
-
 #: OpenCV camera frame (x right, y down, z forward) → OpenGL camera frame (y up, z backward).
 CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -30,11 +30,14 @@ _GL_READY = False
 
 
 def prepare_gl() -> None:
-    """Make the process safe for an offscreen GL context (idempotent): ``import triton`` before any
-    context exists (the environment defaults are set when this module is imported)."""
+    """Make the process safe for an offscreen GL context (idempotent; call it before importing
+    pyrender or OpenGL): the environment defaults ``PYOPENGL_PLATFORM=egl`` and ``LP_NUM_THREADS=0``
+    (an existing value is kept), and ``import triton`` before any context exists."""
     global _GL_READY
     if _GL_READY:
         return
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    os.environ.setdefault("LP_NUM_THREADS", "0")
     logging.getLogger("OpenGL").setLevel(logging.WARNING)  # "No OpenGL_accelerate module loaded"
     try:  # noqa: SIM105 — importing it later, after a GL context exists, segfaults
         import triton  # noqa: F401
