@@ -19,4 +19,26 @@ try:  # the one place the version is written is pyproject.toml
 except _NotFound:  # pragma: no cover - a source tree that was never installed
     __version__ = "0+unknown"
 
-__all__ = ["LieGroup", "SO3", "R3SO3", "SE3", "SE2", "get_group", "__version__"]
+#: the rest of the public API, imported on first use (``posediff.load_checkpoint`` does not pay for
+#: Lightning or the data modules until it is called)
+_LAZY = {
+    "load_checkpoint": ("posediff.checkpoint", "load_checkpoint"),
+    "predict": ("posediff.predict", "predict"),
+    "Prediction": ("posediff.predict", "Prediction"),
+    "load_image": ("posediff.predict", "load_image"),
+    "PoseDiffusionModule": ("posediff.module", "PoseDiffusionModule"),
+    "SymmetrySet": ("posediff.symmetry", "SymmetrySet"),
+    "modes": ("posediff.diffusion", "modes"),
+}
+
+
+def __getattr__(name: str):  # noqa: ANN202 - PEP 562
+    if name in _LAZY:
+        import importlib
+
+        module, attr = _LAZY[name]
+        return getattr(importlib.import_module(module), attr)
+    raise AttributeError(f"module 'posediff' has no attribute {name!r}")
+
+
+__all__ = ["LieGroup", "SO3", "R3SO3", "SE3", "SE2", "get_group", "__version__", *_LAZY]

@@ -103,6 +103,8 @@ def _unknown_config_choice(args: Sequence[str], conf: Path) -> str | None:
         folder = conf / key
         if "." in key or not folder.is_dir() or "," in value or value in ("null", ""):
             continue
+        if key.startswith("hydra/"):  # Hydra's own groups also hold its plugins' options (submitit_slurm …)
+            continue
         options = sorted(p.stem for p in folder.glob("*.yaml"))
         if value not in options:
             return f"unknown {key} {value!r}; available: {', '.join(options)}"

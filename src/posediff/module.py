@@ -38,6 +38,10 @@ from .nn.pose_encoder import Encoding
 from .symmetry import SHAPES, set_chordal_sq, symsol_chordal_sq
 
 
+#: the key of the run configuration in the module's hyperparameters (and in its checkpoints)
+CONFIG_HPARAM = "posediff_config"
+
+
 class PoseDiffusionModule(L.LightningModule):
     """Score-based pose diffusion on a Lie group, trained with denoising score matching (paper Alg. 1).
 
@@ -128,8 +132,6 @@ class PoseDiffusionModule(L.LightningModule):
         n = int(self.group.matrix_dim)
         #: width of the anchor packed behind the feature in the condition (0 without an anchor)
         self.anchor_width = n * n if self.anchor else 0
-        #: the resolved run configuration, stored in checkpoints when set (by ``posediff fit``)
-        self.config: dict[str, Any] | None = None
         #: the training loss of every step (floats), for run summaries; stored in checkpoints
         self.loss_history: list[float] = []
         #: the global RNG states of a checkpoint being resumed, restored in :meth:`on_train_start`
@@ -305,6 +307,46 @@ class PoseDiffusionModule(L.LightningModule):
             self.log("val/rotation_loss", parts["rotation"], batch_size=bs)
         self.side_losses(batch, enc, "val")
         return loss
+
+    @property
+    def config(self) -> dict[str, Any] | None:
+        """The resolved run configuration (``posediff fit`` sets it): the module's hyperparameters
+        (``self.hparams["posediff_config"]``, saved by Lightning's ``save_hyperparameters``), stored in
+        every checkpoint and what :meth:`load_from_checkpoint` rebuilds the module from."""
+        value = self.hparams.get(CONFIG_HPARAM) if hasattr(self, "_hparams") else None
+        return value if isinstance(value, dict) else None
+
+    @config.setter
+    def config(self, value: dict[str, Any] | None) -> None:
+        self.save_hyperparameters({CONFIG_HPARAM: value}, logger=value is not None)
+
+    @classmethod
+    def load_from_checkpoint(  # type: ignore[override]
+        cls,
+        checkpoint_path: Any,
+        map_location: Any = None,
+        hparams_file: Any = None,
+        strict: bool | None = None,
+        **kwargs: Any,
+    ) -> "PoseDiffusionModule":
+        """The trained module of a ``posediff fit`` checkpoint, in eval mode — Lightning's usual entry
+        point, here through :func:`posediff.load_checkpoint`: ``torch.load(weights_only=True)``, the
+        stored run config checked against posediff's allow-list before anything is built (never
+        ``cls(**hparams)`` on a file's contents). ``hparams_file`` and keyword overrides are refused
+        (the architecture is the checkpoint's); ``strict`` must not be False."""
+        from .checkpoint import CheckpointError, load_checkpoint
+
+        if hparams_file is not None or kwargs or strict is False:
+            raise TypeError(
+                "posediff checkpoints are rebuilt from their stored, allow-listed run config: "
+                "hparams_file, keyword overrides and strict=False are not supported"
+            )
+        module = load_checkpoint(
+            checkpoint_path, map_location=map_location if map_location is not None else "cpu"
+        )
+        if not isinstance(module, cls):
+            raise CheckpointError(f"{checkpoint_path} holds a {type(module).__name__}, not a {cls.__name__}")
+        return module
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         if self.config is not None:
