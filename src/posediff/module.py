@@ -37,7 +37,6 @@ from .lie._pose import make_pose
 from .nn.pose_encoder import Encoding
 from .symmetry import SHAPES, set_chordal_sq, symsol_chordal_sq
 
-
 #: the key of the run configuration in the module's hyperparameters (and in its checkpoints)
 CONFIG_HPARAM = "posediff_config"
 
