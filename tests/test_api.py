@@ -28,7 +28,7 @@ def ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_the_public_api_is_at_the_top_level() -> None:
     for name in (
         "load_checkpoint",
-        "predict",
+        "sample",
         "Prediction",
         "PoseDiffusionModule",
         "SymmetrySet",

@@ -98,3 +98,21 @@ def test_importing_posediff_changes_no_environment_and_loads_no_fixture() -> Non
     env = {k: v for k, v in os.environ.items() if k not in ("PYOPENGL_PLATFORM", "LP_NUM_THREADS")}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     assert out.stdout.splitlines() == ["[] False", "posediff.data.bop.fixture"], out.stdout + out.stderr
+
+
+def test_the_composition_root_names_no_dataset() -> None:
+    """``tasks.py`` instantiates and calls: no dataset module imported, no data module class named (a
+    data module says what differs through posediff.data.PoseDataModule)."""
+    tasks = SRC / "tasks.py"
+    assert [n for n in _imports(tasks) if n.startswith("posediff.data")] == []
+    names = {n.id for n in ast.walk(ast.parse(tasks.read_text(encoding="utf-8"))) if isinstance(n, ast.Name)}
+    names |= {
+        n.attr for n in ast.walk(ast.parse(tasks.read_text(encoding="utf-8"))) if isinstance(n, ast.Attribute)
+    }
+    assert not {n for n in names if n.startswith(("Bop", "Symsol", "SymmetryToy"))}
+
+
+def test_data_never_imports_evaluation() -> None:
+    bad = [f"{f.relative_to(SRC)} imports {n}" for f in _files("data") for n in _imports(f)
+           if n.startswith(("posediff.evaluation", "posediff.evaluate", "posediff.report", "posediff.predict"))]  # fmt: skip
+    assert bad == []

@@ -23,9 +23,9 @@ except _NotFound:  # pragma: no cover - a source tree that was never installed
 #: Lightning or the data modules until it is called)
 _LAZY = {
     "load_checkpoint": ("posediff.checkpoint", "load_checkpoint"),
-    "predict": ("posediff.predict", "predict"),
-    "Prediction": ("posediff.predict", "Prediction"),
-    "load_image": ("posediff.predict", "load_image"),
+    "sample": ("posediff.evaluation.predict", "predict"),  # posediff.predict is the (old) module
+    "Prediction": ("posediff.evaluation.predict", "Prediction"),
+    "load_image": ("posediff.evaluation.predict", "load_image"),
     "PoseDiffusionModule": ("posediff.module", "PoseDiffusionModule"),
     "SymmetrySet": ("posediff.symmetry", "SymmetrySet"),
     "modes": ("posediff.diffusion", "modes"),

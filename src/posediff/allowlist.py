@@ -72,6 +72,7 @@ TRAINER_ONLY: frozenset[str] = frozenset(
         "posediff.callbacks.progress_bar",
         "posediff.callbacks.ProgressLog",
         "posediff.report.ReportCallback",
+        "posediff.evaluation.report.ReportCallback",
     }
 )
 

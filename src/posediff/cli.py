@@ -156,6 +156,8 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
 
     from . import tasks
     from .config import register_resolvers
+    from .data.bop import commands as bop_commands
+    from .data.symsol import commands as symsol_commands
 
     register_resolvers()
     task: Callable[[DictConfig], int] = {
@@ -166,9 +168,9 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
         "predict": tasks.predict,
         "report": tasks.report,
         "score": tasks.score,
-        "data render": tasks.render_data,
-        "data grid": tasks.render_grid,
-        "data make-bop": tasks.make_bop,
+        "data render": symsol_commands.render_data,
+        "data grid": symsol_commands.render_grid,
+        "data make-bop": bop_commands.make_bop,
     }[name]
     conf = config_dir()
     if not (conf / f"{cmd.config}.yaml").exists():

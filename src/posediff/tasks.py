@@ -4,8 +4,6 @@ Each function here backs one ``posediff`` subcommand; ``posediff.cli`` only pars
 """
 
 import json
-import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -18,6 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from rich.console import Console
 from rich.table import Table
 
+from .evaluation import evaluate_data, write_results
 from .lie import LieGroup
 from .testing import LIE_GROUP_CHECKS
 
@@ -139,8 +138,7 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
             raise
         print(f"posediff fit: {message}", file=sys.stderr)
         return 2
-    if hasattr(datamodule, "summary_line"):
-        print(datamodule.summary_line())
+    print(datamodule.describe())
     try:
         module = instantiate(cfg.module)
     except Exception as e:  # noqa: BLE001 - a missing weights file or a bad option: one line
@@ -181,15 +179,16 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
     if cfg.get("ema") is not None:
         callbacks.append(instantiate(cfg.ema))
     trainer = instantiate(cfg.trainer, callbacks=callbacks)
-    encoding = getattr(datamodule, "encoding", None)
-    if encoding is not None:  # BOP: statistics of the training split, needed to decode at evaluation
-        module.config["data"]["translation_stats"] = encoding.stats()
-        print(f"translation statistics (training split): {encoding.stats()}")
+    stored = datamodule.checkpoint_data()  # e.g. BOP: the training split's translation statistics
+    if stored:
+        module.config["data"].update(stored)
+        for key, value in stored.items():
+            print(f"stored with the checkpoint: data.{key} = {value}")
     results: dict[str, Any] = {"experiment": _experiment_name(), "diffusion": module.diffusion.describe()}
-    rank0 = int(os.environ.get("LOCAL_RANK", "0")) == 0 and int(os.environ.get("NODE_RANK", "0")) == 0
-    if cfg.eval.before and rank0:  # DDP ranks > 0 re-run this function; they only train
+    # DDP ranks > 0 re-run this function; they only train (the trainer knows its rank from the launcher)
+    if cfg.eval.before and trainer.is_global_zero:
         module.to(trainer.strategy.root_device)
-        results["before"] = _evaluate(
+        results["before"] = evaluate_data(
             module,
             datamodule,
             num_samples=int(cfg.eval.num_samples),
@@ -220,7 +219,7 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
     for name, sampler in eval_samplers.items():
         results["after"][name] = {}
         for steps in cfg.eval.num_steps:
-            res = _evaluate(
+            res = evaluate_data(
                 module,
                 datamodule,
                 num_samples=int(cfg.eval.num_samples),
@@ -228,7 +227,7 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
                 sampler=sampler,
                 seed=int(cfg.eval.seed),
             )
-            csv = _write_bop_csv(res, datamodule, out_dir, f"{name}_{int(steps)}steps")
+            csv = write_results(res, datamodule, out_dir, f"{name}_{int(steps)}steps")
             if csv is not None:
                 print(f"BOP19 estimates: {csv}")
             results["after"][name][str(int(steps))] = res
@@ -314,36 +313,6 @@ def _data_error(e: BaseException) -> str | None:
     return None
 
 
-def _evaluate(module: Any, datamodule: Any, **kwargs: Any) -> dict[str, Any]:
-    """``evaluate_bop`` for a BOP data module, else ``evaluate`` over its test loader and shapes."""
-    from .data.bop import BopDataModule
-
-    if isinstance(datamodule, BopDataModule):
-        from .evaluate_bop import evaluate_bop
-
-        return evaluate_bop(module, datamodule, **kwargs)
-    kwargs.pop("vsd", None)  # a BOP option
-    from .evaluate import evaluate
-
-    return evaluate(module, datamodule.test_dataloader(), list(getattr(datamodule, "shapes", [])), **kwargs)
-
-
-def _write_bop_csv(result: dict[str, Any], datamodule: Any, out_dir: Path, tag: str = "") -> Path | None:
-    """Move a BOP evaluation's estimates out of ``result`` into a BOP19 results CSV in ``out_dir``
-    (``posediff-<tag>_<dataset>-<split>.csv``, the toolkit's ``METHOD_DATASET-SPLIT`` naming)."""
-    rows = result.pop("estimates", None)
-    if rows is None:
-        return None
-    from .metrics.bop19 import write_bop19_csv
-
-    dataset = datamodule.root.name.replace("_", "")
-    split = datamodule.test_split.split("_")[0]
-    method = "posediff" + (f"-{tag.replace('_', '-')}" if tag else "")
-    path = write_bop19_csv(out_dir / f"{method}_{dataset}-{split}.csv", rows)
-    result["bop19_csv"] = str(path)
-    return Path(path)
-
-
 def _headline(result: dict[str, Any]) -> str:
     """The one number of an evaluation: the spread (SYMSOL, toy) or the BOP19 average recall."""
     o, nan = result.get("overall", {}), float("nan")
@@ -367,7 +336,7 @@ def _mean(values: list[float]) -> float:
 def _results_markdown(results: dict[str, Any]) -> str:
     """The before/after evaluations as markdown: a before → after spread line per shape, then the
     full per-shape tables."""
-    from .report import run_table
+    from .evaluation.report import run_table
 
     parts = [f"# posediff fit: {results.get('experiment', 'none')}\n"]
     train = results.get("train", {})
@@ -403,67 +372,17 @@ def _results_markdown(results: dict[str, Any]) -> str:
     return "\n".join(parts)
 
 
-def render_data(cfg: DictConfig) -> int:
-    """``posediff data render``: render one SYMSOL / SYMSOL-T split into shards (resumable)."""
-    from .data.symsol import render_dataset
-    from .data.symsol.poses import check_spec
+def _shape(shape: Any) -> str:
+    """A SYMSOL shape given by name or index (``predict shape=cube`` / ``shape=1``)."""
+    from .symmetry import SHAPES
 
-    try:
-        variant = check_spec(str(cfg.dataset), cfg.variant, str(cfg.split))
-        out = cfg.out or f"data/{cfg.dataset}_{variant}_{cfg.preset.name}"
-        summary = render_dataset(
-            out,
-            dataset=str(cfg.dataset),
-            variant=variant,
-            split=str(cfg.split),
-            n_per_shape=int(cfg.n_per_shape),
-            image_size=int(cfg.image_size),
-            seed=int(cfg.seed),
-            shapes=list(cfg.shapes),
-            shard_size=int(cfg.shard_size),
-            workers=int(cfg.workers),
-            progress=bool(cfg.progress),
-        )
-    except (ValueError, FileNotFoundError, RuntimeError) as e:
-        print(f"posediff data render: {e}", file=sys.stderr)
-        return 2
-    print(summary.line())
-    return 0
-
-
-def render_grid(cfg: DictConfig) -> int:
-    """``posediff data grid``: a picture of the five shapes (README figure)."""
-    from .data.symsol.grid import render_grid as _grid
-
-    try:
-        path = _grid(
-            cfg.out,
-            dataset=str(cfg.dataset),
-            variant=cfg.variant,
-            per_shape=int(cfg.per_shape),
-            image_size=int(cfg.image_size),
-            seed=int(cfg.seed),
-        )
-    except ValueError as e:
-        print(f"posediff data grid: {e}", file=sys.stderr)
-        return 2
-    print(f"figure: {path}")
-    return 0
-
-
-def make_bop(cfg: DictConfig) -> int:
-    """``posediff data make-bop``: the project's small BOP-format dataset (``posediff.data.bop.fixture``)."""
-    from .data.bop.fixture import make_bop_fixture
-
-    kwargs = OmegaConf.to_container(cfg, resolve=True)
-    out = kwargs.pop("out")
-    try:
-        summary = make_bop_fixture(out, **kwargs)
-    except (ValueError, RuntimeError) as e:
-        print(f"posediff data make-bop: {e}", file=sys.stderr)
-        return 2
-    print(summary.line())
-    return 0
+    if isinstance(shape, int) and not isinstance(shape, bool) and 0 <= shape < len(SHAPES):
+        return SHAPES[shape]
+    if shape in SHAPES:
+        return str(shape)
+    raise ValueError(
+        f"unknown shape {shape!r}; shapes are {', '.join(SHAPES)} (or their indices 0..{len(SHAPES) - 1})"
+    )
 
 
 def _device(name: str) -> torch.device:
@@ -522,7 +441,7 @@ def evaluate_checkpoint(cfg: DictConfig) -> int:
     ``metrics.md`` in the run folder. Step counts are a sampler option (``sampler.num_steps``)."""
     from ._io import atomic_write_json, atomic_write_text
     from .checkpoint import CheckpointError
-    from .report import run_table
+    from .evaluation.report import run_table
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
@@ -535,10 +454,9 @@ def evaluate_checkpoint(cfg: DictConfig) -> int:
     except (CheckpointError, ValueError, FileNotFoundError, RuntimeError) as e:
         print(f"posediff eval: {e}", file=sys.stderr)
         return 2
-    if hasattr(datamodule, "summary_line"):
-        print(datamodule.summary_line())
+    print(datamodule.describe())
     module.to(device)
-    result = _evaluate(
+    result = evaluate_data(
         module,
         datamodule,
         num_samples=int(cfg.num_samples),
@@ -547,7 +465,7 @@ def evaluate_checkpoint(cfg: DictConfig) -> int:
         max_inputs=cfg.max_inputs,
         vsd=bool(cfg.get("vsd", True)),
     )
-    _write_bop_csv(result, datamodule, out_dir)
+    write_results(result, datamodule, out_dir)
     result.update(
         ckpt_path=str(cfg.ckpt_path),
         device=str(device),
@@ -571,9 +489,9 @@ def score(cfg: DictConfig) -> int:
     import time
 
     from ._io import atomic_write_json, atomic_write_text
-    from .evaluate_bop import check_estimates, score_estimates
+    from .evaluation.bop import check_estimates, score_estimates
+    from .evaluation.report import run_table
     from .metrics.bop19 import VSD_DELTAS, read_bop19_csv
-    from .report import run_table
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     start = time.perf_counter()
@@ -630,7 +548,7 @@ def score(cfg: DictConfig) -> int:
 
 def report(cfg: DictConfig) -> int:
     """``posediff report dir=<multirun folder>``: the jobs' metrics in one table (Table 4 layout)."""
-    from .report import collect_sweep
+    from .evaluation.report import collect_sweep
 
     try:
         _, table = collect_sweep(str(cfg.dir))
@@ -643,9 +561,12 @@ def report(cfg: DictConfig) -> int:
 
 
 def predict(cfg: DictConfig) -> int:
-    """``posediff predict``: hypotheses, modes, ``poses.npz`` / ``poses.json`` and the plots for one image."""
+    """``posediff predict``: hypotheses, modes, ``poses.npz`` / ``poses.json`` and the plots for one
+    image file (``image=``) or one test sample (``index=``; what it needs comes from the data module,
+    :meth:`posediff.data.PoseDataModule.prediction_input`)."""
+    from .allowlist import target_class
     from .checkpoint import CheckpointError
-    from .predict import image_tensor, predict, read_image, save_prediction
+    from .evaluation import decode_prediction, image_tensor, predict, read_image, save_prediction
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
@@ -660,171 +581,75 @@ def predict(cfg: DictConfig) -> int:
         device = _device(str(cfg.device))
         picture = read_image(str(cfg.image)) if cfg.image is not None else None  # checked before the model
         module, run = _checkpoint_run(cfg)
-        if str(run.data.get("_target_", "")).startswith("posediff.data.bop"):
-            if cfg.index is None:
-                raise ValueError(
-                    f"checkpoint {cfg.ckpt_path} is a BOP model: it needs a test target's box, mask and "
-                    "camera — give index=N (a target of its test split), not image="
-                )
-            module.to(_device(str(cfg.device)))
-            return _predict_bop(cfg, module, run, out_dir)
+        data_cls = target_class(OmegaConf.to_container(run.data), where="checkpoint data")  # allow-listed
+        if getattr(data_cls, "needs_test_target", False) and cfg.index is None:
+            raise ValueError(
+                f"checkpoint {cfg.ckpt_path} was trained on {data_cls.__name__} data: a prediction needs a test "
+                "target's box, mask and camera — give index=N (a target of its test split), not image="
+            )
         size = int(run.data.get("image_size", 0) or 0)
         if module.cond_key != "image" or not size:
             raise ValueError(
                 f"checkpoint {cfg.ckpt_path} was not trained on images (condition {module.cond_key!r})"
             )
-        shape, gt_pose = cfg.shape, None
         if cfg.index is not None:
-            sample = _test_sample(run, int(cfg.index))
-            image, gt_pose = sample["image"], sample["pose"]
-            from .symmetry import SHAPES
-
-            shape = SHAPES[int(sample["shape"])]
+            inp = _data(run).prediction_input(int(cfg.index))
         else:
-            image = image_tensor(picture, size)
-        if shape is not None:
-            from .data.symsol import shape_name
-
-            shape = shape_name(shape)
+            K, offset = data_cls.image_camera(run.data)
+            inp = {"image": image_tensor(picture, size), "K": K, "camera_offset": offset, "gt_pose": None}
+            if cfg.shape is not None:
+                inp["shape"] = _shape(cfg.shape)
     except (CheckpointError, ValueError, FileNotFoundError, IndexError, KeyError) as e:
-        print(f"posediff predict: {e}", file=sys.stderr)
+        print(f"posediff predict: {_data_error(e) or e}", file=sys.stderr)
         return 2
     module.to(device)
     pred = predict(
         module,
-        image,
+        inp["image"],
         num_samples=int(cfg.num_samples),
         trajectory=bool(cfg.trajectory),
         seed=int(cfg.seed),
         mode_radius_deg=float(cfg.mode_radius_deg),
         min_mode_weight=float(cfg.min_mode_weight),
     )
-    K, offset = _camera(run)
+    if inp.get("decode") is not None:  # network poses → camera frame (BOP: mm)
+        pred = decode_prediction(
+            pred,
+            inp["decode"],
+            module.group,
+            mode_radius_deg=float(cfg.mode_radius_deg),
+            mode_translation_radius=float(inp.get("mode_translation_radius", 20.0)),
+            min_mode_weight=float(cfg.min_mode_weight),
+        )
     files = save_prediction(
         pred,
         out_dir,
-        image=image,
-        K=K,
-        camera_offset=offset,
-        shape=shape,
-        gt_pose=gt_pose,
+        image=inp["image"],
+        K=inp.get("K"),
+        camera_offset=inp.get("camera_offset"),
+        shape=inp.get("shape"),
+        mesh=inp.get("mesh"),
+        gt_pose=inp.get("gt_pose"),
+        gt_rotations=inp.get("gt_rotations"),
         top_modes=int(cfg.top_modes),
         info={
             "ckpt_path": str(cfg.ckpt_path),
             "image": None if cfg.image is None else str(cfg.image),
             "index": cfg.index,
-            "shape": shape,
+            "shape": inp.get("shape"),
+            **inp.get("info", {}),
             "group": module.group.name,
             "sampler": OmegaConf.to_container(run.module.sampler, resolve=True),
         },
     )
-    print(f"{pred.modes.summary()} from {pred.samples.shape[0]} hypotheses in {pred.seconds:.2f} s")
+    title = f"{inp['title']}: " if inp.get("title") else ""
+    print(f"{title}{pred.modes.summary()} from {pred.samples.shape[0]} hypotheses in {pred.seconds:.2f} s")
     for k in range(min(len(pred.modes), int(cfg.top_modes))):
-        print(f"  mode {k}: weight {float(pred.modes.weights[k]):.3f}")
+        line = f"  mode {k}: weight {float(pred.modes.weights[k]):.3f}"
+        if inp.get("decode") is not None:
+            t = pred.modes.poses[k, :3, 3].tolist()
+            line += f", t = ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) mm"
+        print(line)
     for name, path in files.items():
         print(f"{name}: {path}")
     return 0
-
-
-def _predict_bop(cfg: DictConfig, module: Any, run: DictConfig, out_dir: Path) -> int:
-    """``posediff predict`` for a BOP model: test target ``cfg.index`` (in loader order), its
-    hypotheses decoded to the camera frame (mm), modes, and the pictures over the crop."""
-    from .data.bop.roi import crop_intrinsics
-    from .predict import decode_prediction, predict, save_prediction
-
-    try:
-        datamodule = _data(run)
-        n = len(datamodule.test)
-        if not 0 <= int(cfg.index) < n:
-            raise IndexError(f"index={cfg.index} but the test split has {n} targets with visible pixels")
-    except (ValueError, FileNotFoundError, IndexError) as e:
-        print(f"posediff predict: {e}", file=sys.stderr)
-        return 2
-    ds = datamodule.test
-    sample = ds[int(cfg.index)]
-    inst = ds.instances[int(cfg.index)]
-    S, enc = datamodule.image_size, datamodule.encoding
-    K, c, s = sample["K"].double(), sample["centre"].double(), sample["side"].double()
-
-    def decode(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        lead = x.shape[:-2]  # rotation-only models are decoded at the true translation
-        t = sample["translation"].double().expand(*lead, 3)
-        return enc.decode_pose(
-            x, K.expand(*lead, 3, 3), c.expand(*lead, 2), s.expand(*lead), S, translation=t
-        )
-
-    pred = predict(
-        module,
-        sample["image"],
-        num_samples=int(cfg.num_samples),
-        trajectory=bool(cfg.trajectory),
-        seed=int(cfg.seed),
-        mode_radius_deg=float(cfg.mode_radius_deg),
-        min_mode_weight=float(cfg.min_mode_weight),
-    )
-    pred = decode_prediction(
-        pred,
-        decode,
-        module.group,
-        mode_radius_deg=float(cfg.mode_radius_deg),
-        mode_translation_radius=0.1 * datamodule.models.diameter(inst.obj_id),
-        min_mode_weight=float(cfg.min_mode_weight),
-    )
-    gt = torch.eye(4, dtype=torch.float64)
-    gt[:3, :3], gt[:3, 3] = sample["rotation"].double(), sample["translation"].double()
-    syms_R, _ = datamodule.models.symmetries(inst.obj_id, max_sym_disc_step=math.pi / 36, evaluation=True)
-    files = save_prediction(
-        pred,
-        out_dir,
-        image=sample["image"],
-        K=crop_intrinsics(inst.K, c.numpy(), float(s), S),
-        mesh=datamodule.models.mesh(inst.obj_id),
-        gt_pose=gt,
-        gt_rotations=gt[:3, :3].numpy() @ syms_R,
-        top_modes=int(cfg.top_modes),
-        info={
-            "ckpt_path": str(cfg.ckpt_path),
-            "index": int(cfg.index),
-            "scene_id": inst.scene_id,
-            "im_id": inst.im_id,
-            "gt_idx": inst.gt_idx,
-            "obj_id": inst.obj_id,
-            "frame": "camera (OpenCV), translation in mm",
-            "group": module.group.name,
-            "sampler": OmegaConf.to_container(run.module.sampler, resolve=True),
-        },
-    )
-    print(f"obj {inst.obj_id} in scene {inst.scene_id} image {inst.im_id}: {pred.modes.summary()} "
-          f"from {pred.samples.shape[0]} hypotheses in {pred.seconds:.2f} s")  # fmt: skip
-    for k in range(min(len(pred.modes), int(cfg.top_modes))):
-        t = pred.modes.poses[k, :3, 3].tolist()
-        print(
-            f"  mode {k}: weight {float(pred.modes.weights[k]):.3f}, t = ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) mm"
-        )
-    for name, path in files.items():
-        print(f"{name}: {path}")
-    return 0
-
-
-def _test_sample(run: DictConfig, index: int) -> dict[str, Any]:
-    """Sample ``index`` of a run's test data (in loader order)."""
-    datamodule = _data(run)
-    n = 0
-    for batch in datamodule.test_dataloader():
-        b = int(batch["pose"].shape[0])
-        if index < n + b:
-            return {k: v[index - n] for k, v in batch.items()}
-        n += b
-    raise IndexError(f"index={index} but the test data has {n} samples")
-
-
-def _camera(run: DictConfig) -> tuple[Any, Any]:
-    """``K`` and the pose → camera translation offset of a SYMSOL run (``(None, None)`` otherwise)."""
-    target = str(run.data.get("_target_", ""))
-    if not target.startswith("posediff.data.symsol"):
-        return None, None
-    import numpy as np
-
-    from .data.symsol.render import SCENE_DISTANCE, intrinsics
-
-    return intrinsics(int(run.data.image_size)), np.array([0.0, 0.0, SCENE_DISTANCE])

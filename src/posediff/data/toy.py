@@ -35,6 +35,7 @@ from torch.utils.data import DataLoader, Dataset
 from ..lie import LieGroup, get_group
 from ..lie.so3 import uniform_rotation
 from ..symmetry import SHAPES, canonical_rotation, is_continuous, min_angle_to_equivalents, symmetry_group
+from .protocol import LoaderPredictions
 from .resumable import ResumableDataLoader, eval_loader
 
 #: seed offsets of the toy's held-out draws (the training set is drawn from ``seed`` itself)
@@ -177,7 +178,7 @@ def spread_poses(shape: str, num_poses: int, seed: int, candidates_per_pose: int
     return torch.stack([canonical_rotation(shape, cand[i]) for i in chosen])
 
 
-class SymmetryToyDataModule(L.LightningDataModule):
+class SymmetryToyDataModule(LoaderPredictions, L.LightningDataModule):
     """Train / validation / test splits of the toy (three separately seeded draws), for
     ``posediff fit +experiment=toy_*``. Validation (``val/loss``, which picks ``best.ckpt``) never
     reads the test draw. The training loader resumes mid-epoch exactly
@@ -262,3 +263,10 @@ class SymmetryToyDataModule(L.LightningDataModule):
     def test_dataloader(self) -> DataLoader:
         assert self.test is not None
         return eval_loader(self.test, batch_size=self.num_test_per_shape)
+
+    # ------------------------------------------------------------------ posediff.data.PoseDataModule
+    def describe(self) -> str:
+        return f"symmetry toy: shapes {', '.join(self.shapes)}, {self.num_test_per_shape} test conditions per shape"
+
+    def prediction_input(self, index: int) -> dict[str, Any]:
+        raise ValueError("the symmetry toy has no images to predict from (its condition is the shape alone)")

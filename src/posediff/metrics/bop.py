@@ -51,17 +51,13 @@ from typing import Any
 import numpy as np
 
 from ..symmetry import SymmetrySet
+from ._arrays import as_float64 as _np
 
 _CHUNK_POINTS = 1 << 20  # (pose, symmetry, point) triples per chunk: a (C, N, 3) float64 array ≈ 24 MB
 _CHUNK_PIXELS = 1 << 21  # pixels per VSD chunk: a float64 map ≈ 16 MB
 _CHUNK_PAIRS = 1 << 22  # point pairs per ADI block: a float64 matrix ≈ 32 MB
 
 
-def _np(x: Any) -> np.ndarray:
-    """numpy float64 view of ``x`` (torch tensors are detached and moved to the CPU first)."""
-    if hasattr(x, "detach") and hasattr(x, "cpu"):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x, dtype=np.float64)
 
 
 def _rot(R: Any, name: str) -> np.ndarray:

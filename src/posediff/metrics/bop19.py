@@ -31,7 +31,7 @@ of the BOP score. With no target at all a recall is 0 (as the toolkit's).
 
 **Full error matrices** (:func:`average_recall`): every estimate of an image and object against every
 target instance of that object in that image, then the matching above — the toolkit's scores; this
-is what ``posediff eval`` and ``posediff score`` use (:func:`posediff.evaluate_bop.score_estimates`).
+is what ``posediff eval`` and ``posediff score`` use (:func:`posediff.evaluation.bop.score_estimates`).
 **Paired errors** (:func:`ar_from_paired_errors`): each target with at most one estimate scored
 against its own GT only — the toolkit's result only with one instance per object and image; with
 sibling instances an estimate could also match a sibling, which pairing cannot see.
@@ -52,7 +52,7 @@ import numpy as np
 
 from .._io import atomic_write_text
 from ..symmetry import SymmetrySet, min_angle_deg
-from .bop import _np
+from ._arrays import as_float64 as _np
 
 
 def _steps(step: float, n: int = 10) -> tuple[float, ...]:

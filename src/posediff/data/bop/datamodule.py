@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import lightning as L
 import numpy as np
@@ -420,6 +420,69 @@ class BopDataModule(L.LightningDataModule):
                     "(it stores them) or set data.translation_stats={mean: [...], std: [...]}"
                 )
             self.test = self._dataset(self._test_instances(), train=False)
+
+    # ------------------------------------------------------------------ posediff.data.PoseDataModule
+    #: the BOP19 protocol scores the test split (posediff.evaluation.bop)
+    scorer: ClassVar[str] = "bop"
+    #: a prediction needs a test target's box, mask and camera (``predict index=N``, never ``image=``)
+    needs_test_target: ClassVar[bool] = True
+
+    def describe(self) -> str:
+        return self.summary_line()
+
+    def checkpoint_data(self) -> dict[str, Any]:
+        """The translation statistics of the training split: eval decodes with them."""
+        return {"translation_stats": self.encoding.stats()} if self.encoding.fitted else {}
+
+    def results_filename(self, tag: str = "") -> str:
+        """The BOP toolkit's ``METHOD_DATASET-SPLIT.csv``: ``posediff[-tag]_<folder>-<split>.csv``."""
+        dataset = self.root.name.replace("_", "")
+        split = self.test_split.split("_")[0]
+        return "posediff" + (f"-{tag.replace('_', '-')}" if tag else "") + f"_{dataset}-{split}.csv"
+
+    @classmethod
+    def image_camera(cls, data_config: Any) -> tuple[Any, Any]:
+        return None, None
+
+    def prediction_input(self, index: int) -> dict[str, Any]:
+        """Test target ``index`` (loader order): its crop, the decoding of network poses to the camera
+        frame (mm), the crop's intrinsics, the model, the truth and its symmetric equivalents."""
+        import math
+
+        from .roi import crop_intrinsics
+
+        if self.test is None:
+            self.setup("test")
+        assert self.test is not None
+        n = len(self.test)
+        if not 0 <= int(index) < n:
+            raise IndexError(f"index={index} but the test split has {n} targets with visible pixels")
+        sample, inst = self.test[int(index)], self.test.instances[int(index)]
+        S, enc = self.image_size, self.encoding
+        K, c, s = sample["K"].double(), sample["centre"].double(), sample["side"].double()
+
+        def decode(x: Tensor) -> tuple[Tensor, Tensor]:
+            lead = x.shape[:-2]  # rotation-only models are decoded at the true translation
+            t = sample["translation"].double().expand(*lead, 3)
+            return enc.decode_pose(
+                x, K.expand(*lead, 3, 3), c.expand(*lead, 2), s.expand(*lead), S, translation=t
+            )
+
+        gt = torch.eye(4, dtype=torch.float64)
+        gt[:3, :3], gt[:3, 3] = sample["rotation"].double(), sample["translation"].double()
+        syms_R, _ = self.models.symmetries(inst.obj_id, max_sym_disc_step=math.pi / 36, evaluation=True)
+        return {
+            "image": sample["image"],
+            "decode": decode,
+            "K": crop_intrinsics(inst.K, c.numpy(), float(s), S),
+            "mesh": self.models.mesh(inst.obj_id),
+            "gt_pose": gt,
+            "gt_rotations": gt[:3, :3].numpy() @ syms_R,
+            "mode_translation_radius": 0.1 * self.models.diameter(inst.obj_id),
+            "title": f"obj {inst.obj_id} in scene {inst.scene_id} image {inst.im_id}",
+            "info": {"scene_id": inst.scene_id, "im_id": inst.im_id, "gt_idx": inst.gt_idx, "obj_id": inst.obj_id,
+                     "frame": "camera (OpenCV), translation in mm"},
+        }  # fmt: skip
 
     def summary_line(self) -> str:
         """What was read and what the filter dropped, in one line (``posediff fit`` / ``eval`` print it)."""

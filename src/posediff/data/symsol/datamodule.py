@@ -31,6 +31,7 @@ from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_in
 
 from ...lie import LieGroup, get_group
 from ...symmetry import SHAPES
+from ..protocol import LoaderPredictions
 from ..resumable import ResumableDataLoader, eval_loader
 from .poses import check_spec, sample_poses
 from .render import SCENE_DISTANCE, SymsolRenderer, intrinsics
@@ -212,7 +213,7 @@ class SymsolShardDataset(IterableDataset):
                 )
 
 
-class SymsolDataModule(L.LightningDataModule):
+class SymsolDataModule(LoaderPredictions, L.LightningDataModule):
     """SYMSOL / SYMSOL-T train and test loaders (``conf/data/symsol*.yaml``).
 
     ``group`` (``so3`` / ``r3so3`` / ``se3``, a name or a group) sets the shape of ``pose``.
@@ -378,6 +379,25 @@ class SymsolDataModule(L.LightningDataModule):
     def test_dataloader(self) -> DataLoader:
         assert self.test is not None, "call setup() first"
         return eval_loader(self.test, batch_size=self.batch_size, num_workers=self.num_workers)
+
+    # ------------------------------------------------------------------ posediff.data.PoseDataModule
+    def describe(self) -> str:
+        where = f"shards in {self.root}" if self.mode == "shards" else "rendered on the fly"
+        return f"{self.dataset} data ({where}): shapes {', '.join(self.shapes)}, {self.image_size} px"
+
+    def prediction_input(self, index: int) -> dict[str, Any]:
+        from .shapes import shape_name
+
+        s = self.test_sample(index)
+        K, offset = self.image_camera({"image_size": self.image_size})
+        shape = shape_name(SHAPES[int(s["shape"])])
+        return {"image": s["image"], "gt_pose": s["pose"], "shape": shape, "K": K, "camera_offset": offset,
+                "info": {"shape": shape}}  # fmt: skip
+
+    @classmethod
+    def image_camera(cls, data_config: Any) -> tuple[Any, Any]:
+        """The renderer's camera at the config's ``image_size`` and the scene centre's offset."""
+        return intrinsics(int(data_config["image_size"])), np.array([0.0, 0.0, SCENE_DISTANCE])
 
 
 __all__ = ["SymsolDataModule", "SymsolRenderDataset", "SymsolShardDataset", "to_sample"]
