@@ -58,8 +58,6 @@ _CHUNK_PIXELS = 1 << 21  # pixels per VSD chunk: a float64 map ≈ 16 MB
 _CHUNK_PAIRS = 1 << 22  # point pairs per ADI block: a float64 matrix ≈ 32 MB
 
 
-
-
 def _rot(R: Any, name: str) -> np.ndarray:
     a = _np(R)
     if a.ndim not in (2, 3) or a.shape[-2:] != (3, 3):
