@@ -47,7 +47,7 @@ sys.path.insert(0, str(ROOT / "src"))
 from posediff._io import atomic_write_json  # noqa: E402
 from posediff.data.bop import BopDataModule  # noqa: E402
 from posediff.data.bop.fixture import make_bop_fixture  # noqa: E402
-from posediff.evaluate_bop import check_estimates, score_estimates  # noqa: E402
+from posediff.evaluation import check_estimates, score_estimates  # noqa: E402
 from posediff.metrics.bop19 import read_bop19_csv, write_bop19_csv  # noqa: E402
 
 DATASETS = {

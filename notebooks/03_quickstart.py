@@ -40,9 +40,7 @@ from hydra.utils import instantiate
 
 from posediff.config import register_resolvers
 from posediff.data.symsol import render_dataset
-from posediff.evaluate import evaluate
-from posediff.predict import predict, save_prediction
-from posediff.report import run_table
+from posediff.evaluation import evaluate, predict, run_table, save_prediction
 
 FAST = os.environ.get("POSEDIFF_FAST", "1") != "0"
 OUT = Path(os.environ.get("POSEDIFF_NOTEBOOK_OUT", "outputs/notebooks"))

@@ -69,3 +69,26 @@ def test_load_from_checkpoint_refuses_a_tampered_config(ckpt: Path, tmp_path: Pa
     with pytest.raises(CheckpointError, match="builtins.open"):
         PoseDiffusionModule.load_from_checkpoint(path)
     assert sentinel.read_text() == "keep"
+
+
+def test_every_moved_name_is_still_importable() -> None:
+    """CHANGELOG 0.2.0: the modules that moved into posediff.evaluation re-export their names."""
+    import importlib
+
+    moved = {
+        "posediff.evaluate": ("evaluate", "SampledBatches", "ROTATION_THRESHOLDS_DEG", "TRANSLATION_THRESHOLDS"),
+        "posediff.evaluate_bop": ("evaluate_bop", "predict_targets", "score_estimates", "check_estimates"),
+        "posediff.report": ("run_table", "axis_table", "sweep_rows", "sweep_table", "collect_sweep", "ReportCallback"),
+        "posediff.predict": ("predict", "save_prediction", "load_image", "read_image", "image_tensor", "ImageError",
+                             "Prediction", "decode_prediction", "figure_so3", "figure_translations",
+                             "figure_trajectory", "overlay", "MAX_IMAGE_PIXELS"),
+        "posediff.symmetry": ("SHAPES", "symmetry_group", "min_angle_to_equivalents", "canonical_rotation",
+                              "invariant_embedding", "decode_embedding", "set_chordal_sq", "symsol_chordal_sq"),
+    }  # fmt: skip
+    evaluation = importlib.import_module("posediff.evaluation")
+    for module, names in moved.items():
+        m = importlib.import_module(module)
+        for name in names:
+            obj = getattr(m, name)
+            if module != "posediff.symmetry" and hasattr(evaluation, name):
+                assert obj is getattr(evaluation, name), (module, name)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from posediff.data.bop import BopDataModule
-from posediff.evaluate_bop import check_estimates, score_estimates
+from posediff.evaluation.bop import check_estimates, score_estimates
 from posediff.metrics.bop19 import BopEstimate
 
 PAPER = ("recall_rot@2", "recall_rot@10", "recall_trans@2cm", "recall_x@2cm", "recall_z@10cm")

@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from posediff.data.bop import BopDataModule
-from posediff.evaluate_bop import evaluate_bop
+from posediff.evaluation.bop import evaluate_bop
 from posediff.metrics.bop19 import read_bop19_csv, write_bop19_csv
 from posediff.report import run_table
 

@@ -289,7 +289,7 @@ def _pair_errors(
         if depths is not None:
             out["vsd"] = np.zeros((0, G, n_tau))
         return out
-    pts, syms = models.points(obj_id), models.symmetries(obj_id, evaluation=True)
+    pts, syms = models.points(obj_id), models.symmetry_set(obj_id, evaluation=True)
     Re = np.repeat(np.stack([e.R for e in ests]), G, axis=0)  # pair (e, g) at row e·G + g
     te = np.repeat(np.stack([e.t for e in ests]), G, axis=0)
     Rg = np.tile(np.stack([g.R for g in gts]), (E, 1, 1))
