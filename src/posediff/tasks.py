@@ -17,6 +17,7 @@ from rich.console import Console
 from rich.table import Table
 
 from .evaluation import evaluate_data, write_results
+from .evaluation.report import fit_markdown, headline
 from .lie import LieGroup
 from .testing import LIE_GROUP_CHECKS
 
@@ -196,7 +197,7 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
             seed=int(cfg.eval.seed),
         )
         results["before"].pop("estimates", None)
-        print(f"before training: {_headline(results['before'])}")
+        print(f"before training: {headline(results['before'])}")
     start = time.perf_counter()
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.ckpt_path)
@@ -232,7 +233,7 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
                 print(f"BOP19 estimates: {csv}")
             results["after"][name][str(int(steps))] = res
     json.dumps(results)  # fail here, before writing, if something is not serialisable
-    text = _results_markdown(results)
+    text = fit_markdown(results)
     atomic_write_text(out_dir / "metrics.md", text)
     path = atomic_write_json(out_dir / "metrics.json", results)
     print(text)
@@ -313,14 +314,6 @@ def _data_error(e: BaseException) -> str | None:
     return None
 
 
-def _headline(result: dict[str, Any]) -> str:
-    """The one number of an evaluation: the spread (SYMSOL, toy) or the BOP19 average recall."""
-    o, nan = result.get("overall", {}), float("nan")
-    if result.get("kind") == "bop":
-        return f"BOP19 AR {o.get('AR', nan):.3f} over {result.get('targets')} targets"
-    return f"spread {o.get('spread_deg', nan):.2f}°"
-
-
 def _experiment_name() -> str:
     try:
         choices = HydraConfig.get().runtime.choices
@@ -331,45 +324,6 @@ def _experiment_name() -> str:
 
 def _mean(values: list[float]) -> float:
     return sum(values) / len(values) if values else float("nan")
-
-
-def _results_markdown(results: dict[str, Any]) -> str:
-    """The before/after evaluations as markdown: a before → after spread line per shape, then the
-    full per-shape tables."""
-    from .evaluation.report import run_table
-
-    parts = [f"# posediff fit: {results.get('experiment', 'none')}\n"]
-    train = results.get("train", {})
-    if train:
-        parts.append(
-            f"trained {train['steps']} steps in {train['seconds']:.0f} s; "
-            f"loss {train['loss_first']:.3f} → {train['loss_last']:.3f} (mean of the first / last 50 steps)\n"
-        )
-    after = [(name, steps, res) for name, by in results.get("after", {}).items() for steps, res in by.items()]
-    if "before" in results and after:
-        b, (name, steps, a) = results["before"], after[-1]
-        if a.get("kind") == "bop":
-            cols = [("AR", "AR"), ("recall_rot@5", "R@5°"), ("recall_trans@5cm", "T@5cm")]
-        else:
-            cols = [("spread_deg", "spread (°)"), ("translation_error", "t err")]
-        cols = [(k, h) for k, h in cols if k in a["overall"]]
-        head = "| shape |" + "".join(f" {h} before | {h} after |" for _, h in cols)
-        lines = [head, "|---|" + "---|---|" * len(cols)]
-        nan = float("nan")
-        for shape in [*a["shapes"], "overall"]:
-            mb = b["overall"] if shape == "overall" else b["shapes"].get(shape, {})
-            ma = a["overall"] if shape == "overall" else a["shapes"][shape]
-            row = f"| {shape} |"
-            for k, _ in cols:
-                digits = 1 if k == "spread_deg" else 3
-                row += f" {mb.get(k, nan):.{digits}f} | {ma.get(k, nan):.{digits}f} |"
-            lines.append(row)
-        parts.append(f"untrained vs trained ({name}, {steps} steps):\n\n" + "\n".join(lines) + "\n")
-    if "before" in results:
-        parts.append("## untrained model\n\n" + run_table(results["before"]))
-    for name, steps, res in after:
-        parts.append(f"## trained model — sampler {name}, {steps} steps\n\n" + run_table(res))
-    return "\n".join(parts)
 
 
 def _shape(shape: Any) -> str:
@@ -542,7 +496,7 @@ def score(cfg: DictConfig) -> int:
     table = run_table(result)
     atomic_write_text(out_dir / "metrics.md", table)
     print(table)
-    print(f"{_headline(result)}; metrics: {out_dir / 'metrics.json'}")
+    print(f"{headline(result)}; metrics: {out_dir / 'metrics.json'}")
     return 0
 
 

@@ -197,7 +197,54 @@ class ReportCallback(Callback):
         print(f"report: {sweep_dir / 'report.md'}")
 
 
+def headline(result: dict[str, Any]) -> str:
+    """The one number of an evaluation: the spread (SYMSOL, toy) or the BOP19 average recall."""
+    o, nan = result.get("overall", {}), float("nan")
+    if result.get("kind") == "bop":
+        return f"BOP19 AR {o.get('AR', nan):.3f} over {result.get('targets')} targets"
+    return f"spread {o.get('spread_deg', nan):.2f}°"
+
+
+def fit_markdown(results: dict[str, Any]) -> str:
+    """The before/after evaluations as markdown: a before → after spread line per shape, then the
+    full per-shape tables."""
+    parts = [f"# posediff fit: {results.get('experiment', 'none')}\n"]
+    train = results.get("train", {})
+    if train:
+        parts.append(
+            f"trained {train['steps']} steps in {train['seconds']:.0f} s; "
+            f"loss {train['loss_first']:.3f} → {train['loss_last']:.3f} (mean of the first / last 50 steps)\n"
+        )
+    after = [(name, steps, res) for name, by in results.get("after", {}).items() for steps, res in by.items()]
+    if "before" in results and after:
+        b, (name, steps, a) = results["before"], after[-1]
+        if a.get("kind") == "bop":
+            cols = [("AR", "AR"), ("recall_rot@5", "R@5°"), ("recall_trans@5cm", "T@5cm")]
+        else:
+            cols = [("spread_deg", "spread (°)"), ("translation_error", "t err")]
+        cols = [(k, h) for k, h in cols if k in a["overall"]]
+        head = "| shape |" + "".join(f" {h} before | {h} after |" for _, h in cols)
+        lines = [head, "|---|" + "---|---|" * len(cols)]
+        nan = float("nan")
+        for shape in [*a["shapes"], "overall"]:
+            mb = b["overall"] if shape == "overall" else b["shapes"].get(shape, {})
+            ma = a["overall"] if shape == "overall" else a["shapes"][shape]
+            row = f"| {shape} |"
+            for k, _ in cols:
+                digits = 1 if k == "spread_deg" else 3
+                row += f" {mb.get(k, nan):.{digits}f} | {ma.get(k, nan):.{digits}f} |"
+            lines.append(row)
+        parts.append(f"untrained vs trained ({name}, {steps} steps):\n\n" + "\n".join(lines) + "\n")
+    if "before" in results:
+        parts.append("## untrained model\n\n" + run_table(results["before"]))
+    for name, steps, res in after:
+        parts.append(f"## trained model — sampler {name}, {steps} steps\n\n" + run_table(res))
+    return "\n".join(parts)
+
+
 __all__ = [
+    "fit_markdown",
+    "headline",
     "AXIS_COLUMNS",
     "COLUMNS",
     "ReportCallback",
