@@ -208,6 +208,13 @@ def _score_csv(env: Env, field: int | None = None, value: str = "") -> str:
     return f"csv={path}"
 
 
+def _existing(env: Env) -> Path:
+    folder = env.dir / "mine"
+    folder.mkdir()
+    (folder / "notes.txt").write_text("mine")
+    return folder
+
+
 def _score(env: Env, field: int | None = None, value: str = "") -> list[str]:
     return ["score", _score_csv(env, field, value), f"data.root={env.bop}", "vsd=false", _run(env)]
 
@@ -309,6 +316,14 @@ CASES = [
          lambda e: _score(e, 5, "0 nan 600"), "method_bop-test.csv:3: non-finite"),
     Case("score_not_a_bop_dataset", "the path and the command that makes a dataset",
          lambda e: ["score", _score_csv(e), f"data.root={e.dir / 'nothere'}", _run(e)], "make-bop"),
+    # ---- posediff export
+    Case("export_unknown_format", "the formats listed",
+         lambda e: ["export", f"ckpt_path={e.ckpt}", "format=tflite", f"out={e.dir / 'x'}"],
+         "unknown format 'tflite'; choose one of: onnx, torchscript, exported_program"),
+    Case("export_missing_checkpoint", "not found, and where fit writes them",
+         lambda e: ["export", f"ckpt_path={e.dir / 'none.ckpt'}", f"out={e.dir / 'x'}"], "not found"),
+    Case("export_out_exists", "refused; another folder or overwrite=true",
+         lambda e: ["export", f"ckpt_path={e.ckpt}", "format=torchscript", f"out={_existing(e)}"], "already exists"),
     # ---- SYMSOL data
     Case("symsol_missing_root", "the path and the command that renders it",
          lambda e: ["fit", *SYMSOL, f"data.root={e.dir / 'nothere'}", _run(e)], "posediff data render"),

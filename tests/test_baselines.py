@@ -146,3 +146,36 @@ def test_pretrain_writes_weights_that_a_new_run_starts_from(tmp_path: Path) -> N
         )
         != 0
     )
+
+
+def test_export_an_image_model_and_refuse_a_regression_one(
+    runs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``posediff export`` of the quickstart image model (locate-then-crop ResNet, anchored denoiser):
+    the exported graphs sample what ``module.sample`` samples; a regression checkpoint has no sampler
+    and gets one line."""
+    import torch
+
+    from posediff.export import draw_from_meta, draw_inputs, load_exported
+
+    ckpt = runs["quickstart"] / "checkpoints" / "last.ckpt"
+    out = tmp_path / "ts"
+    assert main(["export", f"ckpt_path={ckpt}", "format=torchscript", f"out={out}", "num_steps=2",
+                 "num_samples=4"]) == 0  # fmt: skip
+    module = load_checkpoint(ckpt)
+    meta, run = load_exported(out)
+    assert meta["image_size"] == 32 and meta["group"] == module.group.name
+    image = torch.rand(1, 3, 32, 32, generator=torch.Generator().manual_seed(0))
+    x0, noise = draw_inputs(module.sampler, 2, 1, 4, generator=torch.Generator().manual_seed(5))
+    x1, noise1 = draw_from_meta(meta, 1, 4, generator=torch.Generator().manual_seed(5))  # the JSON alone
+    assert torch.equal(x0, x1) and torch.equal(noise, noise1)
+    with torch.no_grad():
+        eager = module.sample(image, 4, 2, generator=torch.Generator().manual_seed(5))
+        exported = run["sampler"](run["encoder"](image), x0, noise)
+    torch.testing.assert_close(exported, eager, atol=1e-4, rtol=1e-4)
+    capsys.readouterr()
+    reg = runs["regression"] / "checkpoints" / "last.ckpt"
+    assert main(["export", f"ckpt_path={reg}", "format=torchscript", f"out={tmp_path / 'reg'}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no diffusion sampler" in err[0], err
+    assert not (tmp_path / "reg").exists()

@@ -35,6 +35,11 @@ COMMANDS: dict[str, Command] = {
         "pose hypotheses, modes and plots for one image: posediff predict ckpt_path=CKPT image=IMG.png",
         "predict",
     ),
+    "export": Command(
+        "write a checkpoint's encoder, denoiser and sampling loop for other runtimes: "
+        "posediff export ckpt_path=CKPT format=onnx|torchscript|exported_program out=DIR",
+        "export",
+    ),
     "score": Command(
         "score a BOP19 results CSV (any method's) on a BOP dataset: posediff score csv=PATH data.root=DIR",
         "score",
@@ -168,6 +173,7 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
         "predict": tasks.predict,
         "report": tasks.report,
         "score": tasks.score,
+        "export": tasks.export_checkpoint,
         "data render": symsol_commands.render_data,
         "data grid": symsol_commands.render_grid,
         "data make-bop": bop_commands.make_bop,

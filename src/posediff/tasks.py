@@ -500,6 +500,63 @@ def score(cfg: DictConfig) -> int:
     return 0
 
 
+def export_checkpoint(cfg: DictConfig) -> int:
+    """``posediff export``: a checkpoint's graphs in ONNX / TorchScript / ExportedProgram
+    (:func:`posediff.export.export_module`), written to ``<out>.partial`` and renamed."""
+    from ._io import OutputFolderError, check_output_dir, make_output_dir, remove_own_dir, replace_dir
+    from .checkpoint import CheckpointError, load_checkpoint
+    from .export import FORMATS, ExportError, export_module
+
+    command = "posediff export"
+    try:
+        fmt = str(cfg.format)
+        if fmt not in FORMATS:
+            raise ExportError(f"unknown format {fmt!r}; choose one of: {', '.join(FORMATS)}")
+        _whole(cfg.num_samples, "num_samples", 2)
+        if cfg.num_steps is not None:
+            _whole(cfg.num_steps, "num_steps")
+        out = Path(str(cfg.out)) if cfg.out else Path(HydraConfig.get().runtime.output_dir) / fmt
+        if out.exists() and not cfg.overwrite:
+            raise ExportError(f"out={out} already exists; give a new folder or overwrite=true")
+        check_output_dir(out, command, replace=True, key="out")  # only a folder posediff made is replaced
+        module = load_checkpoint(cfg.ckpt_path)
+        if getattr(module, "estimator", None) is not None or not hasattr(module.sampler, "step"):
+            raise ExportError(
+                f"checkpoint {cfg.ckpt_path} is a {type(module).__name__} (no diffusion sampler): "
+                "posediff export writes diffusion models only"
+            )
+        config = module.config or {}
+        size = int((config.get("data") or {}).get("image_size") or 0)
+        if module.cond_key == "image" and size:
+            example = torch.zeros(1, 3, size, size)
+        else:  # a condition of the run's own test data (the toys)
+            run = OmegaConf.create(config)
+            example = next(iter(_data(run).test_dataloader()))[module.cond_key][:1]
+    except (CheckpointError, ExportError, OutputFolderError, ValueError, FileNotFoundError) as e:
+        print(f"{command}: {_data_error(e) or e}", file=sys.stderr)
+        return 2
+    partial = out.with_name(out.name + ".partial")
+    remove_own_dir(partial, command)
+    make_output_dir(partial, command)
+    try:
+        files = export_module(
+            module, partial, fmt, example=example,
+            num_steps=None if cfg.num_steps is None else int(cfg.num_steps), num_samples=int(cfg.num_samples),
+            info={"ckpt_path": str(cfg.ckpt_path), "image_size": size or None},
+        )  # fmt: skip
+    except ExportError as e:
+        remove_own_dir(partial, command)
+        print(f"{command}: {e}", file=sys.stderr)
+        return 2
+    except BaseException:
+        remove_own_dir(partial, command)
+        raise
+    replace_dir(partial, out, command)
+    for name, path in files.items():
+        print(f"{name}: {out / path.name}")
+    return 0
+
+
 def report(cfg: DictConfig) -> int:
     """``posediff report dir=<multirun folder>``: the jobs' metrics in one table (Table 4 layout)."""
     from .evaluation.report import collect_sweep
