@@ -72,6 +72,9 @@ bench-sampler: ## time per denoising step, network vs group math (writes benchma
 notebooks: ## run the notebooks in fast mode
 	$(PY) -m pytest -q -m notebooks tests/test_notebooks.py
 
+gpu-check: ## the one GPU check (benchmarks/gpu_check.py, ≤ 8 min): JSON + table in benchmarks/results/gpu_check_<gpu>.*
+	$(PY) benchmarks/gpu_check.py
+
 lint: ## ruff check + format check + mypy (lie/, diffusion/, symmetry, metrics/; pyproject [tool.mypy])
 	$(PY) -m ruff check src tests benchmarks notebooks
 	$(PY) -m ruff format --check src tests benchmarks notebooks
@@ -81,4 +84,4 @@ clean: ## remove caches and outputs (keeps .venv)
 	rm -rf .pytest_cache outputs multirun build dist
 	find . -name __pycache__ -type d -prune -exec rm -rf {} +
 
-.PHONY: help install system-deps test test-all demo walkthrough figures bench bench-tuned bench-render learning-speed pretrain notebooks lint clean
+.PHONY: help install system-deps test test-all demo walkthrough figures bench bench-tuned bench-render learning-speed pretrain notebooks gpu-check lint clean

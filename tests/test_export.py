@@ -71,8 +71,8 @@ def test_torchscript_on_every_group(model, tmp_path: Path) -> None:  # noqa: ANN
     assert _check(module, example, tmp_path / "ts", STEPS) == 0.0
 
 
-@pytest.mark.parametrize("fmt", ["exported_program", "onnx"])
-def test_exported_program_and_onnx(fmt: str, tmp_path: Path) -> None:
+@pytest.mark.parametrize("fmt", ["onnx", pytest.param("exported_program", marks=pytest.mark.slow)])
+def test_exported_program_and_onnx(fmt: str, tmp_path: Path) -> None:  # ONNX goes through torch.export
     module, example = _model("se3")
     export_module(module, tmp_path / fmt, fmt, example=example, num_steps=1, num_samples=N)
     _check(module, example, tmp_path / fmt, 1)
