@@ -3,6 +3,7 @@
     OMP_WAIT_POLICY=PASSIVE python benchmarks/sampler.py            # N = 1000 × B = 1, float32, 2 threads
     python benchmarks/sampler.py --quick                            # smoke run (few repeats, eager only)
     python benchmarks/sampler.py --no-compiled --out /tmp/s.json    # skip the torch.compile variant
+    python benchmarks/sampler.py --images                           # images/s of the quickstart model, batches of images
 
 The setting of the issue: 1000 hypotheses for 1 condition (a random 512-d feature), the default
 MLP denoiser (``conf/denoiser/mlp.yaml``: hidden 256, one Fourier block pair, 128 frequencies),
@@ -194,8 +195,80 @@ def summarise(c: Case, steps: int) -> dict[str, Any]:
     }
 
 
+IMAGES_RESULTS = Path(__file__).resolve().parent / "results" / "sampler_images.json"
+
+
+def images(args: argparse.Namespace) -> int:
+    """``--images``: whole-image throughput of the quickstart model (the ``make demo`` network: a ResNet18
+    pose encoder on 64 px crops of 128 px images, the anchored MLP denoiser, R³×SO(3)): batches of B
+    images, N hypotheses each, S steps of its few-step sampler — the encoder once per image, the
+    denoiser batched over all B·N hypotheses — eager and with the denoiser step compiled
+    (:func:`posediff.evaluation.sampling.accelerated_denoise_fn`). Random weights (the time does not
+    depend on them). Writes ``benchmarks/results/sampler_images.json``."""
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from posediff.cli import config_dir
+    from posediff.config import register_resolvers
+    from posediff.evaluation.sampling import accelerated_denoise_fn
+
+    torch.set_num_threads(args.threads)
+    register_resolvers()
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        cfg = compose("fit", overrides=["+experiment=quickstart"])
+    torch.manual_seed(args.seed)
+    module = instantiate(cfg.module).eval()
+    size = int(cfg.data.image_size)
+    rows = []
+    plan = [(b, n, st) for b in (1, 16) for n in (1, 64) for st in (5, 10)]
+    if args.quick:
+        plan = [(1, 1, 5), (16, 64, 5)]
+    modes = ["eager"] if args.no_compiled else ["eager", "compiled"]
+    t_start = time.perf_counter()
+    for mode in modes:
+        fn = accelerated_denoise_fn(module, mode)
+        for b, n, st in plan:
+            image = torch.rand(b, 3, size, size, generator=torch.Generator().manual_seed(0))
+
+            def run(image: Tensor = image, n: int = n, st: int = st, fn: Any = fn) -> None:
+                with torch.no_grad():
+                    cond = module.encode(image)
+                    module.sampler.sample(fn, cond, n, st, torch.Generator().manual_seed(0))
+
+            t0 = time.perf_counter()
+            run()
+            run()  # warm-up (and compilation)
+            warm = time.perf_counter() - t0
+            times = []
+            for _ in range(max(3, args.repeats // 3)):
+                t0 = time.perf_counter()
+                run()
+                times.append(time.perf_counter() - t0)
+            sec = statistics.median(times)
+            rows.append({"mode": mode, "batch": b, "hypotheses": n, "steps": st, "images_per_s": b / sec,
+                         "s_per_batch": sec, "warmup_s": warm})  # fmt: skip
+            print(
+                f"{mode:9s} B={b:3d} N={n:3d} S={st:3d}: {b / sec:8.1f} images/s ({1000 * sec / b:.1f} ms/image)"
+            )
+    meta = {"command": " ".join(["python", "benchmarks/sampler.py", *sys.argv[1:]]),
+            "date": dt.datetime.now().isoformat(timespec="seconds"), "model": "+experiment=quickstart (random weights)",
+            "image_size": size, "threads": torch.get_num_threads(), "torch": torch.__version__,
+            "cpu": _cpu_model(), "cpu_count": os.cpu_count(), "load_average": os.getloadavg(),
+            "elapsed_s": round(time.perf_counter() - t_start, 1)}  # fmt: skip
+    out = args.out if args.out != RESULTS else IMAGES_RESULTS
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile("w", dir=out.parent, delete=False, suffix=".tmp") as f:
+        json.dump({"meta": meta, "results": rows}, f, indent=2)
+    os.replace(f.name, out)
+    print(f"wrote {out}")
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument(
+        "--images", action="store_true", help="whole-image throughput of the quickstart model (images/s)"
+    )
     ap.add_argument("--n", type=int, default=1000, help="hypotheses per condition")
     ap.add_argument("--steps", type=int, default=10, help="denoising steps per sample() call")
     ap.add_argument("--repeats", type=int, default=11, help="timed rounds")
@@ -205,6 +278,8 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="smoke run: 3 rounds of 5 steps, eager only")
     ap.add_argument("--out", type=Path, default=RESULTS, help="JSON output path")
     args = ap.parse_args()
+    if args.images:
+        return images(args)
     if args.quick:
         args.repeats, args.steps, args.no_compiled = 3, 5, True
 

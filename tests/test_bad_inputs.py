@@ -372,8 +372,8 @@ def _execute(case: Case, env: Env) -> tuple[int, str, str, dict[str, bytes]]:
         text=True,
         env={**os.environ, "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "1"},
     )
-    if case.interrupt is not None:
-        deadline = time.monotonic() + 120
+    if case.interrupt is not None:  # Ctrl-C once the case is where it should be interrupted
+        deadline = time.monotonic() + 400  # (under load, starting torch and the renderer can take minutes)
         while not case.interrupt(env) and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.2)
         proc.send_signal(signal.SIGINT)

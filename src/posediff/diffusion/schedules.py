@@ -68,8 +68,12 @@ class NoiseSchedule(Registered, family=True):
         """
         log_table = self._table.log().to(device=sigma.device, dtype=torch.float64)
         ls = sigma.to(torch.float64).clamp_min(1e-300).log()
-        # searchsorted (left) as a count of the entries below — the same index, and exportable (ONNX)
-        idx = (log_table < ls.unsqueeze(-1)).sum(-1)
+        if torch.compiler.is_compiling() or torch.jit.is_tracing():
+            # being exported (torch.export / ONNX / TorchScript): searchsorted (left) as a count of the
+            # entries below — the same index, in ops every exporter has
+            idx = (log_table < ls.unsqueeze(-1)).sum(-1)
+        else:
+            idx = torch.searchsorted(log_table, ls.reshape(-1).contiguous()).reshape(ls.shape)
         idx = idx.clamp(1, self.num_levels - 1)
         lo, hi = log_table[idx - 1], log_table[idx]
         frac = ((ls - lo) / (hi - lo)).clamp(0.0, 1.0)
