@@ -74,8 +74,10 @@ def test_torchscript_on_every_group(model, tmp_path: Path) -> None:  # noqa: ANN
 @pytest.mark.parametrize("fmt", ["onnx", pytest.param("exported_program", marks=pytest.mark.slow)])
 def test_exported_program_and_onnx(fmt: str, tmp_path: Path) -> None:  # ONNX goes through torch.export
     module, example = _model("se3")
-    export_module(module, tmp_path / fmt, fmt, example=example, num_steps=1, num_samples=N)
-    _check(module, example, tmp_path / fmt, 1)
+    export_module(module, tmp_path / fmt, fmt, example=example[:1], num_steps=1, num_samples=N)
+    _check(module, torch.cat([example, example[:1]]), tmp_path / fmt, 1)  # 3 inputs, not the example's 1 (2)
+    meta, _ = load_exported(tmp_path / fmt)
+    assert all(meta["dynamic"].values()), meta["dynamic"]
 
 
 @pytest.mark.slow

@@ -201,6 +201,8 @@ def export_module(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     module = module.eval()
+    if fmt != "torchscript" and int(example.shape[0]) == 1:  # a size-1 dimension cannot be exported dynamic
+        example = torch.cat([example, example])
     shapes = _example_shapes(module, example, num_samples, steps)
     with torch.no_grad():
         cond = module.encode(example)
