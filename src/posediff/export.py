@@ -210,7 +210,8 @@ def export_module(
     x_init, noise = draw_inputs(
         sampler, steps, int(example.shape[0]), num_samples, generator=g, dtype=cond.dtype
     )
-    sigma = torch.full(shapes["sigma"], float(_levels(sampler, steps)[0][0]), dtype=cond.dtype)
+    sig_t, sig_next = _levels(sampler, steps)
+    sigma = torch.full(shapes["sigma"], sig_t[0], dtype=cond.dtype)
     batch, hyp = torch.export.Dim("batch", min=1, max=4096), torch.export.Dim("hypotheses", min=2, max=65536)
     graphs = {
         "encoder": (ConditionEncoder(module), (example,), ["input"], {"cond": {0: batch}}),
@@ -235,8 +236,8 @@ def export_module(
         "matrix_dim": int(module.group.matrix_dim),
         "dim": int(module.group.dim),
         "num_steps": steps,
-        "sigma_t": _levels(sampler, steps)[0],
-        "sigma_next": _levels(sampler, steps)[1],
+        "sigma_t": sig_t,
+        "sigma_next": sig_next,
         "noise_steps": noise_steps(sampler, steps),
         "sampler": {"name": getattr(sampler, "name", type(sampler).__name__),
                     **{k: v for k, v in vars(sampler).items() if isinstance(v, (int, float, str, bool))}},

@@ -326,19 +326,6 @@ def _mean(values: list[float]) -> float:
     return sum(values) / len(values) if values else float("nan")
 
 
-def _shape(shape: Any) -> str:
-    """A SYMSOL shape given by name or index (``predict shape=cube`` / ``shape=1``)."""
-    from .symmetry import SHAPES
-
-    if isinstance(shape, int) and not isinstance(shape, bool) and 0 <= shape < len(SHAPES):
-        return SHAPES[shape]
-    if shape in SHAPES:
-        return str(shape)
-    raise ValueError(
-        f"unknown shape {shape!r}; shapes are {', '.join(SHAPES)} (or their indices 0..{len(SHAPES) - 1})"
-    )
-
-
 def _device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -609,7 +596,9 @@ def predict(cfg: DictConfig) -> int:
             K, offset = data_cls.image_camera(run.data)
             inp = {"image": image_tensor(picture, size), "K": K, "camera_offset": offset, "gt_pose": None}
             if cfg.shape is not None:
-                inp["shape"] = _shape(cfg.shape)
+                from .symmetry import shape_name
+
+                inp["shape"] = shape_name(cfg.shape)
     except (CheckpointError, ValueError, FileNotFoundError, IndexError, KeyError) as e:
         print(f"posediff predict: {_data_error(e) or e}", file=sys.stderr)
         return 2

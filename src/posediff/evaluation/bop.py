@@ -39,7 +39,6 @@ rows, the paper's "Avg(30)").
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable, Sequence
 from typing import Any
 
@@ -53,13 +52,15 @@ from ..metrics import bop, bop19
 from ..metrics.bop19 import BopEstimate
 from ..module import PoseDiffusionModule
 from .sampling import SampledBatches
+from .shapes import _fmt_thr as _label
+from .shapes import _nanmean
 
 ROT_THRESHOLDS_DEG = (2.0, 5.0, 10.0)
 TRANS_THRESHOLDS_CM = (2.0, 5.0, 10.0)
 #: mode radii for choosing the estimate among several hypotheses (degrees, mm)
 MODE_RADIUS_DEG = 10.0
 MODE_TRANSLATION_RADIUS_MM = 20.0
-#: the estimates written and scored for the targets predicted (module docstring)
+#: one image and object: ``(scene_id, im_id, obj_id)``
 Key = tuple[int, int, int]
 
 
@@ -120,13 +121,6 @@ def predict_targets(
     finally:
         module.train(was_training)
     return estimates, run.summary()
-
-
-def _nanmean(values: Sequence[float]) -> float:
-    """The mean of the non-NaN values; NaN when there are none (without numpy's warning)."""
-    v = np.asarray(values, dtype=np.float64)
-    v = v[~np.isnan(v)]
-    return float(v.mean()) if len(v) else math.nan
 
 
 def estimates_of_predictions(
@@ -228,10 +222,6 @@ def _paper_thresholds() -> list[tuple[str, np.ndarray]]:
     mm = np.asarray(TRANS_THRESHOLDS_CM) * 10.0
     out = [("rot", np.asarray(ROT_THRESHOLDS_DEG)), ("trans", mm)]
     return out + [(axis, mm) for axis in "xyz"]
-
-
-def _label(x: float) -> str:
-    return f"{x:g}"
 
 
 def _paper_keys() -> list[str]:

@@ -40,6 +40,7 @@ from __future__ import annotations
 import functools
 import math
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -69,6 +70,19 @@ def _check_shape(shape: str) -> str:
     if shape not in _NUM_MODES:
         raise ValueError(f"unknown SYMSOL shape {shape!r}; expected one of {SHAPES}")
     return shape
+
+
+def shape_name(shape: str | int) -> str:
+    """``"cube"`` or ``1`` → ``"cube"``; unknown names or ids → one-line ``ValueError``."""
+    if isinstance(shape, (int, np.integer)) and not isinstance(shape, bool):
+        if 0 <= int(shape) < len(SHAPES):
+            return SHAPES[int(shape)]
+        raise ValueError(
+            f"unknown SYMSOL shape id {shape}; ids are 0..{len(SHAPES) - 1} for {', '.join(SHAPES)}"
+        )
+    if shape not in _NUM_MODES:
+        raise ValueError(f"unknown SYMSOL shape {shape!r}; available: {', '.join(SHAPES)}")
+    return str(shape)
 
 
 def is_continuous(shape: str) -> bool:
@@ -409,6 +423,7 @@ __all__ = [
     "min_angle_to_equivalents",
     "rotation_angle",
     "set_chordal_sq",
+    "shape_name",
     "symmetric_chordal_sq",
     "symsol_chordal_sq",
 ]

@@ -29,7 +29,7 @@ import math
 import numpy as np
 from torch import Tensor
 
-from ...symmetry import GOLDEN_RATIO, SHAPES, is_continuous, symmetry_group
+from ...symmetry import GOLDEN_RATIO, SHAPES, is_continuous, shape_name, symmetry_group
 
 #: Integer id of each shape (its index in :data:`posediff.symmetry.SHAPES`), as stored in datasets.
 SHAPE_IDS: dict[str, int] = {s: i for i, s in enumerate(SHAPES)}
@@ -39,19 +39,6 @@ SHAPE_SIZE = 3.5
 #: Sections of the cone and cylinder meshes: one vertex every 1°, so the 1° symmetry grid maps
 #: the mesh exactly onto itself.
 ROUND_SECTIONS = 360
-
-
-def shape_name(shape: str | int) -> str:
-    """``"cube"`` or ``1`` → ``"cube"``; unknown names or ids → one-line ``ValueError``."""
-    if isinstance(shape, (int, np.integer)) and not isinstance(shape, bool):
-        if 0 <= int(shape) < len(SHAPES):
-            return SHAPES[int(shape)]
-        raise ValueError(
-            f"unknown SYMSOL shape id {shape}; ids are 0..{len(SHAPES) - 1} for {', '.join(SHAPES)}"
-        )
-    if shape not in SHAPE_IDS:
-        raise ValueError(f"unknown SYMSOL shape {shape!r}; available: {', '.join(SHAPES)}")
-    return str(shape)
 
 
 def _hull(vertices: np.ndarray):  # noqa: ANN202 — trimesh.Trimesh
