@@ -45,6 +45,9 @@ BUILDABLE: frozenset[str] = frozenset(
         "posediff.diffusion.GeodesicRandomWalk",
         "posediff.diffusion.AncestralSampler",
         "posediff.diffusion.FewStepSampler",
+        "posediff.diffusion.HeunSampler",
+        "posediff.diffusion.CrouchGrossmanSampler",
+        "posediff.diffusion.RKMKSampler",
         # networks and modules
         "posediff.nn.ResNetEncoder",
         "posediff.nn.PoseEncoder",

@@ -40,6 +40,11 @@ COMMANDS: dict[str, Command] = {
         "posediff export ckpt_path=CKPT format=onnx|torchscript|exported_program out=DIR",
         "export",
     ),
+    "distill": Command(
+        "a few-step student of a trained diffusion model, as a normal checkpoint: "
+        "posediff distill ckpt_path=TEACHER steps=5 [max_steps=N] [out=FILE]",
+        "distill",
+    ),
     "score": Command(
         "score a BOP19 results CSV (any method's) on a BOP dataset: posediff score csv=PATH data.root=DIR",
         "score",
@@ -174,6 +179,7 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
         "report": tasks.report,
         "score": tasks.score,
         "export": tasks.export_checkpoint,
+        "distill": tasks.distill,
         "data render": symsol_commands.render_data,
         "data grid": symsol_commands.render_grid,
         "data make-bop": bop_commands.make_bop,

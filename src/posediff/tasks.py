@@ -358,6 +358,8 @@ def _checkpoint_run(cfg: DictConfig) -> tuple[Any, DictConfig]:
     sampler = cfg.get("sampler")
     if sampler:
         s = OmegaConf.to_container(sampler, resolve=True)
+        if "_target_" not in s:  # single keys over the stored sampler; null keeps the stored value
+            s = {k: v for k, v in s.items() if v is not None}
         run.module.sampler = s if "_target_" in s else OmegaConf.merge(run.module.sampler, s)
     module.sampler = instantiate(run.module.sampler)(module.diffusion)  # bad num_steps: one-line ValueError
     return module, run
@@ -484,6 +486,99 @@ def score(cfg: DictConfig) -> int:
     atomic_write_text(out_dir / "metrics.md", table)
     print(table)
     print(f"{headline(result)}; metrics: {out_dir / 'metrics.json'}")
+    return 0
+
+
+def distill(cfg: DictConfig) -> int:
+    """``posediff distill ckpt_path=TEACHER steps=5``: a few-step student (:mod:`posediff.distill`) trained
+    on the teacher's own training data, written as a normal checkpoint (``out``, default
+    ``<run>/checkpoints/last.ckpt``) plus ``distill.json`` in the run folder."""
+    import lightning as L
+
+    from ._io import atomic_write_json
+    from .checkpoint import CONFIG_KEY, CheckpointError, module_from_checkpoint, read_checkpoint
+    from .distill import DistillationError, SegmentDistillation, save_student
+    from .module import PoseDiffusionModule
+
+    command = "posediff distill"
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        L.seed_everything(int(cfg.seed), workers=True, verbose=False)
+        ckpt = read_checkpoint(cfg.ckpt_path)
+        teacher = module_from_checkpoint(ckpt, cfg.ckpt_path)
+        if not isinstance(teacher, PoseDiffusionModule) or not hasattr(teacher.sampler, "step"):
+            raise DistillationError(
+                f"checkpoint {cfg.ckpt_path} is a {type(teacher).__name__}, not a diffusion model: "
+                "posediff distill needs a score model trained by posediff fit"
+            )
+        levels = teacher.diffusion.schedule.num_levels
+        steps = _whole(cfg.steps, "steps", 1, levels)
+        _whole(cfg.substeps, "substeps")
+        _whole(cfg.num_hypotheses, "num_hypotheses")
+        _whole(cfg.reuse, "reuse")
+        _whole(cfg.max_steps, "max_steps")
+        if not (float(cfg.lr) > 0 and float(cfg.lr_final) > 0):
+            raise DistillationError(f"lr and lr_final must be > 0, got {cfg.lr} and {cfg.lr_final}")
+        run = OmegaConf.create(ckpt[CONFIG_KEY])
+        if cfg.get("data"):
+            run.data = OmegaConf.merge(run.data, OmegaConf.to_container(cfg.data, resolve=False))
+        out = Path(str(cfg.out)) if cfg.out else out_dir / "checkpoints" / "last.ckpt"
+        if out.is_dir():
+            raise DistillationError(f"out={out} is a folder; give the student checkpoint's file name")
+        datamodule = instantiate(run.data)
+        datamodule.setup("fit")
+    except (CheckpointError, DistillationError, ValueError, FileNotFoundError, RuntimeError) as e:
+        print(f"{command}: {_data_error(e) or e}", file=sys.stderr)
+        return 2
+    print(datamodule.describe())
+    distiller = SegmentDistillation(
+        teacher,
+        steps=steps,
+        substeps=int(cfg.substeps),
+        num_hypotheses=int(cfg.num_hypotheses),
+        reuse=int(cfg.reuse),
+        lr=float(cfg.lr),
+        lr_final=float(cfg.lr_final),
+    )
+    print(
+        f"student: {steps} few_step steps (σ {', '.join(f'{s:.3g}' for s in distiller.sig_t)} → 0); "
+        f"teacher: {cfg.substeps} Heun steps per student step"
+    )
+    _lightning_logs_to_stdout()
+    callbacks = list(instantiate(cfg.trainer.get("callbacks")) or [])
+    if not cfg.trainer.get("enable_progress_bar", True):
+        from lightning.pytorch.callbacks import ProgressBar
+
+        callbacks = [c for c in callbacks if not isinstance(c, ProgressBar)]
+    trainer = instantiate(cfg.trainer, callbacks=callbacks)
+    start = time.perf_counter()
+    trainer.fit(distiller, datamodule=datamodule)
+    seconds = time.perf_counter() - start
+    losses = distiller.loss_history
+    record = {
+        "teacher": str(cfg.ckpt_path),
+        "method": "segment",
+        "steps": steps,
+        "substeps": int(cfg.substeps),
+        "num_hypotheses": int(cfg.num_hypotheses),
+        "reuse": int(cfg.reuse),
+        "updates": int(trainer.global_step),
+        "lr": float(cfg.lr),
+        "lr_final": float(cfg.lr_final),
+        "seconds": seconds,
+        "loss_first": _mean(losses[:50]),
+        "loss_last": _mean(losses[-50:]),
+    }
+    student = distiller.student.cpu().eval()
+    config = distiller.student_config(OmegaConf.to_container(run, resolve=True), record)
+    path = save_student(student, config, out)
+    atomic_write_json(out_dir / "distill.json", {**record, "student": str(path)})
+    print(
+        f"distilled {record['updates']} updates in {seconds:.0f} s; loss {record['loss_first']:.4f} → "
+        f"{record['loss_last']:.4f}"
+    )
+    print(f"student: {path} (sampler few_step, num_steps={steps})")
+    print(f"next:    posediff eval ckpt_path={path}")
     return 0
 
 

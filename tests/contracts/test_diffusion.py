@@ -61,7 +61,9 @@ def test_contracts_cover_the_builtins() -> None:
     assert {"gaussian", "igso3"} <= set(NoiseKernel.registry)
     assert {"surrogate", "closed_form", "autograd"} <= set(ScoreTarget.registry)
     assert {"linear", "power", "loglinear"} <= set(NoiseSchedule.registry)
-    assert {"random_walk", "ancestral", "few_step"} <= set(Sampler.registry)
+    assert {"random_walk", "ancestral", "few_step", "heun", "crouch_grossman", "rkmk"} <= set(
+        Sampler.registry
+    )
 
 
 def test_sampler_contract_catches_a_broken_sampler() -> None:

@@ -7,7 +7,8 @@ The pieces (paper §4; equation numbers follow the tex, see ``docs/conventions.m
   ``autograd`` (Eq. 18);
 * ``NoiseSchedule`` registry — ``linear`` (paper), ``power`` (authors' code), ``loglinear``;
 * ``Diffusion`` — kernel + schedule + target + output parameterisation + loss + prior;
-* ``Sampler`` registry — ``random_walk`` (Eq. 7), ``ancestral`` (authors' code), ``few_step``;
+* ``Sampler`` registry — ``random_walk`` (Eq. 7), ``ancestral`` (authors' code), ``few_step``,
+  and the probability-flow ODE samplers ``heun``, ``crouch_grossman``, ``rkmk`` (``ode``);
 * ``modes`` — cluster samples into weighted modes; ``log_likelihood`` — probability-flow ODE.
 """
 
@@ -17,6 +18,10 @@ from .kernels import NoiseKernel as NoiseKernel
 from .likelihood import log_likelihood as log_likelihood
 from .modes import Modes as Modes
 from .modes import modes as modes
+from .ode import CrouchGrossmanSampler as CrouchGrossmanSampler
+from .ode import HeunSampler as HeunSampler
+from .ode import ProbabilityFlowSampler as ProbabilityFlowSampler
+from .ode import RKMKSampler as RKMKSampler
 from .oracle import MixtureOracle as MixtureOracle
 from .process import Diffusion as Diffusion
 from .process import NoisyBatch as NoisyBatch
@@ -47,6 +52,10 @@ __all__ = [
     "GeodesicRandomWalk",
     "AncestralSampler",
     "FewStepSampler",
+    "ProbabilityFlowSampler",
+    "HeunSampler",
+    "CrouchGrossmanSampler",
+    "RKMKSampler",
     "MixtureOracle",
     "log_likelihood",
     "Modes",

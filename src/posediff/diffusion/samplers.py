@@ -50,6 +50,9 @@ class Sampler(Registered, family=True):
 
     family_label: ClassVar[str] = "sampler"
     name: ClassVar[str]
+    #: the sampler claims to land on the modes of the exact score, with their weights, at 5 network
+    #: evaluations (the ``five_nfe`` contract check holds it to that)
+    few_nfe: ClassVar[bool] = False
 
     def __init__(self, diffusion: Diffusion, *, num_steps: int | None = None) -> None:
         self.diffusion = diffusion
@@ -106,15 +109,12 @@ class Sampler(Registered, family=True):
             device = device or cond.device
         dtype = dtype or torch.get_default_dtype()
         steps = num_steps if num_steps is not None else self.num_steps
-        levels = self.diffusion.schedule.timesteps(steps)
-        sched = self.diffusion.schedule
-        sig_t = sched.sigma(levels, dtype=torch.float64)
-        sig_p = self._next_sigmas(levels, sig_t)
+        sig_t, sig_p = self.sigma_grid(steps)
         x = self.diffusion.prior(
             (batch_size, int(num_samples)), generator=generator, dtype=dtype, device=device
         )
         path = [x] if trajectory else None
-        for j in range(len(levels)):
+        for j in range(len(sig_t)):
             x = self.step(denoise_fn, x, float(sig_t[j]), float(sig_p[j]), cond, generator)
             if path is not None:
                 path.append(x)
@@ -122,8 +122,25 @@ class Sampler(Registered, family=True):
             return x, torch.stack(path)
         return x
 
+    def sigma_grid(self, num_steps: int | None = None) -> tuple[Tensor, Tensor]:
+        """The noise levels of each step, ``(σ_t, σ_p)`` float64 ``(num_steps,)`` each: step ``j`` moves
+        from ``σ_t[j]`` to ``σ_p[j]`` (0 after the last). Default: the schedule's ``timesteps``."""
+        levels = self.diffusion.schedule.timesteps(num_steps)
+        sig_t = self.diffusion.schedule.sigma(levels, dtype=torch.float64)
+        return sig_t, self._next_sigmas(levels, sig_t)
+
     def _next_sigmas(self, levels: Tensor, sig_t: Tensor) -> Tensor:
         return torch.cat([sig_t[1:], sig_t.new_zeros(1)])
+
+    def steps_for_nfe(self, nfe: int) -> int:
+        """The most steps whose network evaluations fit in ``nfe`` (at least 1): how the few-step
+        tables compare samplers at equal cost."""
+        levels = self.diffusion.schedule.num_levels
+        best = 1
+        for n in range(1, levels + 1):
+            if self.network_calls(n) <= nfe:
+                best = n
+        return best
 
     # ------------------------------------------------------------------ helpers for steps
     def score(self, denoise_fn: DenoiseFn, x: Tensor, sigma: float, cond: Any) -> Tensor:
@@ -271,6 +288,8 @@ class FewStepSampler(Sampler, name="few_step"):
         renoise: fraction η of fresh noise in the re-noising direction, ``√(1−η²) ẑ + η n``
             (0: deterministic).
     """
+
+    few_nfe: ClassVar[bool] = True
 
     def __init__(
         self, diffusion: Diffusion, *, num_steps: int | None = None, order: int = 1, renoise: float = 0.0

@@ -6,6 +6,7 @@ kernel / target / schedule / sampler is tested as soon as it is defined. Out-of-
 ``kernel_contract(MyKernel("so3"))`` etc. directly.
 """
 
+import functools
 import math
 from collections.abc import Callable
 from typing import Any
@@ -291,10 +292,82 @@ def _sampler_trajectory_and_determinism(make: Callable[[Diffusion], Sampler], de
     )
 
 
+def _weighted_modes() -> tuple[torch.Tensor, torch.Tensor]:
+    """Four rotations of the tetrahedral group (120° apart) with weights 0.4 / 0.3 / 0.2 / 0.1."""
+    return _tet_modes()[:4], torch.tensor([0.4, 0.3, 0.2, 0.1], dtype=F64)
+
+
+def _mode_shares(g: LieGroup, modes: torch.Tensor, x: torch.Tensor) -> tuple[float, torch.Tensor]:
+    """(worst angle to the nearest mode, share of the samples at each mode)."""
+    rel = modes.transpose(-1, -2).unsqueeze(0) @ x.unsqueeze(1)
+    best, idx = g.log(rel).norm(dim=-1).min(dim=1)
+    return float(best.max()), torch.bincount(idx, minlength=modes.shape[0]).to(F64) / x.shape[0]
+
+
+@functools.lru_cache(maxsize=4)
+def _reference_shares(device: str) -> torch.Tensor:
+    """The shares the exact probability-flow ODE (Heun, 100 steps = 199 NFE) gives from the Haar
+    prior — not exactly the weights: at σ_max = 1 the noisy law is not yet Haar-uniform, which pulls
+    every sampler's shares toward uniform alike (the random walk at 100 steps: 0.35/0.29/0.23/0.13)."""
+    from ..diffusion.ode import HeunSampler
+
+    g = SO3()
+    d = Diffusion(ConcentratedGaussian(g), LinearSchedule(), prior="haar")
+    modes, w = _weighted_modes()
+    modes = modes.to(device)
+    x = HeunSampler(d).sample(
+        MixtureOracle(d, modes, w.to(device)), None, 4000, 100, _gen(21), dtype=F64, device=device
+    )
+    return _mode_shares(g, modes, x[0])[1].cpu()
+
+
+def _sampler_five_nfe(make: Callable[[Diffusion], Sampler], device: torch.device) -> None:
+    """Samplers that claim few steps (``few_nfe``): with the exact score and 5 network evaluations
+    every sample lands on a mode (a point mass on SO3 and SE3; a weighted 4-mode mixture) and the
+    modes keep their weights (shares in the weights' order, each within 0.07 of the exact flow's —
+    uniform shares would be 0.095 off)."""
+    probe = make(Diffusion(ConcentratedGaussian(SO3()), LinearSchedule(), prior="haar"))
+    if not type(probe).few_nfe:
+        return  # a many-step sampler (the random walk): not held to 5 evaluations
+    for gname in ("so3", "se3"):
+        g = get_group(gname)
+        d = Diffusion(ConcentratedGaussian(g), LinearSchedule(), prior="haar")
+        sampler = make(d)
+        steps = sampler.steps_for_nfe(5)
+        assert sampler.network_calls(steps) <= 5
+        center = g.sample_uniform((1,), generator=_gen(22), dtype=F64, bound=0.5).to(device)
+        x = sampler.sample(MixtureOracle(d, center), None, 200, steps, _gen(23), dtype=F64, device=device)
+        err = g.rminus(center.expand_as(x), x)
+        ang = float(err[..., g.rotation_slice].norm(dim=-1).max())
+        assert ang < math.radians(0.5), f"{gname}: 5 NFE, worst sample {math.degrees(ang):.3f}° off the point"
+        if g.matrix_dim == 4:
+            terr = float((x[..., :3, 3] - center[..., :3, 3]).norm(dim=-1).max())
+            assert terr < 1e-3, f"{gname}: 5 NFE, translation off by {terr:.2e}"
+    g = SO3()
+    d = Diffusion(ConcentratedGaussian(g), LinearSchedule(), prior="haar")
+    sampler = make(d)
+    modes, w = _weighted_modes()
+    modes = modes.to(device)
+    oracle = MixtureOracle(d, modes, w.to(device))
+    x = sampler.sample(oracle, None, 4000, sampler.steps_for_nfe(5), _gen(24), dtype=F64, device=device)[0]
+    worst, shares = _mode_shares(g, modes, x)
+    shares = shares.cpu()
+    assert worst < math.radians(0.5), (
+        f"weighted mixture, 5 NFE: worst sample {math.degrees(worst):.3f}° off a mode"
+    )
+    ref = _reference_shares(str(device))
+    assert bool((shares[:-1] > shares[1:]).all()), f"5 NFE shares {shares.tolist()} not in the weights' order"
+    gap = float((shares - ref).abs().max())
+    assert gap < 0.07, (
+        f"5 NFE shares {[round(v, 3) for v in shares.tolist()]} vs the exact flow's {[round(v, 3) for v in ref.tolist()]}"
+    )
+
+
 SAMPLER_CHECKS: dict[str, Callable[[Callable[[Diffusion], Sampler], torch.device], None]] = {
     "point_mass": _sampler_point_mass,
     "symmetric_mixture": _sampler_symmetric_mixture,
     "trajectory_and_determinism": _sampler_trajectory_and_determinism,
+    "five_nfe": _sampler_five_nfe,
 }
 
 
