@@ -91,7 +91,8 @@ class ProbabilityFlowSampler(Sampler):
             sig = (hi**r + i * (lo**r - hi**r)) ** self.rho
         else:
             sig = torch.logspace(math.log10(hi), math.log10(lo), n, dtype=torch.float64)
-        sig[0], sig[-1] = hi, lo
+        if n > 1:  # exact end points (no rounding of the power / the logarithm)
+            sig[0], sig[-1] = hi, lo
         return sig, torch.cat([sig[1:], sig.new_zeros(1)])
 
     def velocity(self, denoise_fn: DenoiseFn, x: Tensor, sigma: float, cond: Any) -> Tensor:

@@ -1,0 +1,198 @@
+"""Few network evaluations: samplers and distilled students at NFE 1 / 2 / 5 / 10 / 20 / 100 (issue 19).
+
+    python benchmarks/few_step.py --model toy_so3=TEACHER.ckpt --student toy_so3=STUDENT.ckpt \\
+        --model image=IMAGE.ckpt --student image=IMAGE_STUDENT.ckpt --num-samples 100
+
+For each teacher checkpoint every sampler below runs at each NFE budget (the most steps whose network
+evaluations fit: ``Sampler.steps_for_nfe``; the row states the NFE actually spent) on the teacher's
+own test data; each student runs with its own sampler (few_step at the steps it was distilled for).
+Per row: mean spread over the shapes (°), spread per shape, mode coverage of the discrete shapes
+(share of the symmetry-equivalent poses with a hypothesis within 5°), translation error, seconds
+per input. Rows are appended to the JSON as they finish (``--out``; the Markdown table next to it).
+
+Samplers: ``few_step`` (Euler step of the probability-flow ODE, posediff's deterministic few-step
+sampler), ``few_step_renoise`` (predict clean, re-noise with fresh noise: the README's best at 100
+steps), ``heun`` / ``heun_karras`` (order 2, schedule / Karras σ), ``crouch_grossman`` (order 3),
+``rkmk`` (order 4).
+"""
+
+import argparse
+import datetime as dt
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+NFES = (1, 2, 5, 10, 20, 100)
+DISCRETE = ("tet", "cube", "icosa")
+
+
+def samplers(diffusion: Any) -> dict[str, Any]:
+    from posediff.diffusion import CrouchGrossmanSampler, FewStepSampler, HeunSampler, RKMKSampler
+
+    return {
+        "few_step": FewStepSampler(diffusion),
+        "few_step_renoise": FewStepSampler(diffusion, renoise=1.0),
+        "heun": HeunSampler(diffusion),
+        "heun_karras": HeunSampler(diffusion, spacing="karras"),
+        "crouch_grossman": CrouchGrossmanSampler(diffusion),
+        "rkmk": RKMKSampler(diffusion),
+    }
+
+
+def _pairs(values: list[str], flag: str) -> dict[str, Path]:
+    out = {}
+    for v in values:
+        name, sep, path = v.partition("=")
+        if not sep:
+            raise SystemExit(f"{flag} takes NAME=CKPT, got {v!r}")
+        out[name] = Path(path)
+    return out
+
+
+def _row(model: str, kind: str, name: str, budget: int, nfe: int, steps: int, res: dict[str, Any]) -> dict:
+    shapes = res["shapes"]
+    cov = [shapes[s]["coverage"] for s in DISCRETE if s in shapes and shapes[s].get("coverage") is not None]
+    return {
+        "model": model,
+        "kind": kind,
+        "sampler": name,
+        "nfe_budget": budget,
+        "nfe": nfe,
+        "steps": steps,
+        "spread_deg": res["overall"]["spread_deg"],
+        "spread_per_shape": {s: v["spread_deg"] for s, v in shapes.items()},
+        "coverage": {s: shapes[s].get("coverage") for s in DISCRETE if s in shapes},
+        "coverage_mean": sum(cov) / len(cov) if cov else None,
+        "translation_error": res["overall"].get("translation_error"),
+        "seconds_per_input": res["seconds_per_input"],
+        "inputs": res["inputs"],
+        "num_samples": res["num_samples"],
+    }
+
+
+def _data(module: Any) -> Any:
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from posediff.config import register_resolvers
+
+    register_resolvers()
+    dm = instantiate(OmegaConf.create(module.config).data)
+    dm.setup("test")
+    return dm
+
+
+def markdown(rows: list[dict[str, Any]], students: dict[str, dict]) -> str:
+    lines = ["# Few-step sampling: spread (°) / coverage at each NFE", ""]
+    for model in dict.fromkeys(r["model"] for r in rows):
+        mine = [r for r in rows if r["model"] == model]
+        lines += [f"## {model}", "", "| sampler | NFE | steps | spread ° | " + " | ".join(f"{s} °" for s in mine[0]["spread_per_shape"]) + " | coverage tet/cube/icosa | t err | s/input |"]
+        lines.append("|" + "---|" * (7 + len(mine[0]["spread_per_shape"])))
+        for r in mine:
+            cov = "/".join("–" if r["coverage"].get(s) is None else f"{r['coverage'][s]:.2f}" for s in DISCRETE if s in r["coverage"])
+            t = "–" if r["translation_error"] is None else f"{r['translation_error']:.3f}"
+            per = " | ".join(f"{v:.2f}" for v in r["spread_per_shape"].values())
+            label = r["sampler"] if r["kind"] == "teacher" else f"**student** ({r['sampler']})"
+            lines.append(f"| {label} | {r['nfe']} | {r['steps']} | {r['spread_deg']:.2f} | {per} | {cov or '–'} | {t} | {r['seconds_per_input']:.3f} |")
+        lines.append("")
+        ref = [r for r in mine if r["kind"] == "teacher" and r["nfe_budget"] == 100]
+        for r in [r for r in mine if r["nfe"] <= 5 and (r["kind"] == "student" or r["nfe"] == 5)]:
+            if not ref:
+                break
+            best = min(ref, key=lambda q: q["spread_deg"])
+            ratio = r["spread_deg"] / best["spread_deg"]
+            lines.append(
+                f"- {r['sampler']} ({r['kind']}) at {r['nfe']} NFE: {r['spread_deg']:.2f}° = {ratio:.2f}× the best "
+                f"100-NFE spread ({best['sampler']}, {best['spread_deg']:.2f}°) — "
+                f"{'within' if ratio <= 1.2 else 'not within'} 1.2×; coverage {r['coverage_mean'] if r['coverage_mean'] is None else round(r['coverage_mean'], 3)} "
+                f"(best 100-NFE: {best['coverage_mean'] if best['coverage_mean'] is None else round(best['coverage_mean'], 3)})"
+            )
+        info = students.get(model)
+        if info:
+            lines.append(
+                f"- distillation: {info['updates']} updates, {info['seconds'] / 60:.1f} CPU minutes "
+                f"(substeps {info['substeps']}, {info['num_hypotheses']} hypotheses, reuse {info.get('reuse')})"
+            )
+        lines.append("")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", action="append", default=[], help="NAME=TEACHER.ckpt (repeatable)")
+    ap.add_argument("--student", action="append", default=[], help="NAME=STUDENT.ckpt of that teacher")
+    ap.add_argument("--nfe", type=int, nargs="+", default=list(NFES))
+    ap.add_argument("--samplers", nargs="+", default=None, help="a subset of the sampler names")
+    ap.add_argument("--num-samples", type=int, default=100)
+    ap.add_argument("--max-inputs", type=int, default=None)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "few_step.json")
+    args = ap.parse_args()
+
+    from posediff import load_checkpoint
+    from posediff._io import atomic_write_json, atomic_write_text
+    from posediff.evaluation import evaluate_data
+
+    teachers, studs = _pairs(args.model, "--model"), _pairs(args.student, "--student")
+    previous = json.loads(args.out.read_text()) if args.out.is_file() else {}
+    rows = [r for r in previous.get("rows", []) if r["model"] not in teachers]
+    students = {k: v for k, v in previous.get("students", {}).items() if k not in teachers}
+    result = {
+        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        "date": dt.datetime.now().isoformat(timespec="seconds"),
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
+                    "threads": torch.get_num_threads()},
+        "checkpoints": {**previous.get("checkpoints", {}), **{k: str(v) for k, v in teachers.items()},
+                        **{f"{k} (student)": str(v) for k, v in studs.items()}},
+        "rows": rows,
+        "students": students,
+    }  # fmt: skip
+
+    def save() -> None:
+        atomic_write_json(args.out, result)
+        atomic_write_text(args.out.with_suffix(".md"), markdown(result["rows"], result["students"]))
+
+    for model, path in teachers.items():
+        teacher = load_checkpoint(path)
+        dm = _data(teacher)
+        kw = {"num_samples": args.num_samples, "seed": args.seed, "max_inputs": args.max_inputs}
+        table = samplers(teacher.diffusion)
+        names = args.samplers or list(table)
+        for name in names:
+            s = table[name]
+            seen = set()
+            for budget in args.nfe:
+                steps = s.steps_for_nfe(budget)
+                nfe = s.network_calls(steps)
+                if nfe in seen or nfe > budget:
+                    continue
+                seen.add(nfe)
+                t = time.perf_counter()
+                res = evaluate_data(teacher, dm, num_steps=steps, sampler=s, **kw)
+                result["rows"].append(_row(model, "teacher", name, budget, nfe, steps, res))
+                print(f"{model} {name} NFE {nfe} ({steps} steps): {res['overall']['spread_deg']:.2f}° "
+                      f"[{time.perf_counter() - t:.0f} s]", flush=True)  # fmt: skip
+                save()
+        if model in studs:
+            student = load_checkpoint(studs[model])
+            steps = int(student.sampler.num_steps)
+            nfe = student.sampler.network_calls(steps)
+            res = evaluate_data(student, dm, num_steps=steps, **kw)
+            result["rows"].append(_row(model, "student", f"distilled few_step {steps}", nfe, nfe, steps, res))
+            result["students"][model] = dict(student.config.get("distill", {}))
+            print(f"{model} student NFE {nfe}: {res['overall']['spread_deg']:.2f}°", flush=True)
+            save()
+    save()
+    print(markdown(result["rows"], result["students"]))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
