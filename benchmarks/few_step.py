@@ -93,14 +93,26 @@ def markdown(rows: list[dict[str, Any]], students: dict[str, dict]) -> str:
     lines = ["# Few-step sampling: spread (°) / coverage at each NFE", ""]
     for model in dict.fromkeys(r["model"] for r in rows):
         mine = [r for r in rows if r["model"] == model]
-        lines += [f"## {model}", "", "| sampler | NFE | steps | spread ° | " + " | ".join(f"{s} °" for s in mine[0]["spread_per_shape"]) + " | coverage tet/cube/icosa | t err | s/input |"]
+        lines += [
+            f"## {model}",
+            "",
+            "| sampler | NFE | steps | spread ° | "
+            + " | ".join(f"{s} °" for s in mine[0]["spread_per_shape"])
+            + " | coverage tet/cube/icosa | t err | s/input |",
+        ]
         lines.append("|" + "---|" * (7 + len(mine[0]["spread_per_shape"])))
         for r in mine:
-            cov = "/".join("–" if r["coverage"].get(s) is None else f"{r['coverage'][s]:.2f}" for s in DISCRETE if s in r["coverage"])
+            cov = "/".join(
+                "–" if r["coverage"].get(s) is None else f"{r['coverage'][s]:.2f}"
+                for s in DISCRETE
+                if s in r["coverage"]
+            )
             t = "–" if r["translation_error"] is None else f"{r['translation_error']:.3f}"
             per = " | ".join(f"{v:.2f}" for v in r["spread_per_shape"].values())
             label = r["sampler"] if r["kind"] == "teacher" else f"**student** ({r['sampler']})"
-            lines.append(f"| {label} | {r['nfe']} | {r['steps']} | {r['spread_deg']:.2f} | {per} | {cov or '–'} | {t} | {r['seconds_per_input']:.3f} |")
+            lines.append(
+                f"| {label} | {r['nfe']} | {r['steps']} | {r['spread_deg']:.2f} | {per} | {cov or '–'} | {t} | {r['seconds_per_input']:.3f} |"
+            )
         lines.append("")
         ref = [r for r in mine if r["kind"] == "teacher" and r["nfe_budget"] == 100]
         for r in [r for r in mine if r["nfe"] <= 5 and (r["kind"] == "student" or r["nfe"] == 5)]:

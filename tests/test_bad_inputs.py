@@ -324,6 +324,12 @@ CASES = [
          lambda e: ["export", f"ckpt_path={e.dir / 'none.ckpt'}", f"out={e.dir / 'x'}"], "not found"),
     Case("export_out_exists", "refused; another folder or overwrite=true",
          lambda e: ["export", f"ckpt_path={e.ckpt}", "format=torchscript", f"out={_existing(e)}"], "already exists"),
+    # ---- posediff distill
+    Case("distill_steps_zero", "steps named with its range",
+         lambda e: ["distill", f"ckpt_path={e.ckpt}", "steps=0", _run(e)],
+         "steps must be a whole number [1, 100], got 0", after=_no_checkpoints),
+    Case("distill_missing_checkpoint", "not found, and where fit writes them",
+         lambda e: ["distill", f"ckpt_path={e.dir / 'none.ckpt'}", _run(e)], "not found"),
     # ---- SYMSOL data
     Case("symsol_missing_root", "the path and the command that renders it",
          lambda e: ["fit", *SYMSOL, f"data.root={e.dir / 'nothere'}", _run(e)], "posediff data render"),

@@ -179,3 +179,30 @@ def test_export_an_image_model_and_refuse_a_regression_one(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no diffusion sampler" in err[0], err
     assert not (tmp_path / "reg").exists()
+
+
+def test_distill_an_image_model_and_refuse_a_regression_one(
+    runs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``posediff distill`` of the quickstart image model (one update): a checkpoint whose encoder is the
+    teacher's, sampled by few_step at the student's steps; a regression checkpoint gets one line."""
+    import torch
+
+    ckpt = runs["quickstart"] / "checkpoints" / "last.ckpt"
+    out = tmp_path / "student.ckpt"
+    assert main(["distill", f"ckpt_path={ckpt}", "steps=2", "trainer.fast_dev_run=true",
+                 "trainer.enable_progress_bar=false", f"out={out}", f"hydra.run.dir={tmp_path / 'run'}"]) == 0  # fmt: skip
+    student, teacher = load_checkpoint(out), load_checkpoint(ckpt)
+    assert student.sampler.num_steps == 2 and student.config["distill"]["steps"] == 2
+    for k, v in teacher.state_dict().items():
+        if k.startswith("encoder."):
+            assert torch.equal(student.state_dict()[k], v), k
+    image = torch.rand(1, 3, 32, 32, generator=torch.Generator().manual_seed(0))
+    poses = student.sample(image, 3, generator=torch.Generator().manual_seed(1))
+    assert poses.shape == (1, 3, 4, 4) and bool(torch.isfinite(poses).all())
+    capsys.readouterr()
+    reg = runs["regression"] / "checkpoints" / "last.ckpt"
+    assert main(["distill", f"ckpt_path={reg}", f"hydra.run.dir={tmp_path / 'reg'}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a diffusion model" in err[0], err
+    assert not (tmp_path / "reg" / "checkpoints").exists()

@@ -506,7 +506,11 @@ def distill(cfg: DictConfig) -> int:
         L.seed_everything(int(cfg.seed), workers=True, verbose=False)
         ckpt = read_checkpoint(cfg.ckpt_path)
         teacher = module_from_checkpoint(ckpt, cfg.ckpt_path)
-        if not isinstance(teacher, PoseDiffusionModule) or not hasattr(teacher.sampler, "step"):
+        if (
+            not isinstance(teacher, PoseDiffusionModule)
+            or getattr(teacher, "estimator", None) is not None
+            or not hasattr(teacher.sampler, "step")
+        ):
             raise DistillationError(
                 f"checkpoint {cfg.ckpt_path} is a {type(teacher).__name__}, not a diffusion model: "
                 "posediff distill needs a score model trained by posediff fit"

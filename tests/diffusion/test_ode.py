@@ -30,7 +30,9 @@ def _setup(group: str) -> tuple[Diffusion, MixtureOracle]:
     modes = symmetry_group("tet", dtype=F64)[:4]
     if g.matrix_dim == 4:
         t = torch.tensor([[0.3, -0.2, 0.1], [0.0, 0.4, -0.3], [-0.2, 0.1, 0.2], [0.1, 0.1, -0.1]], dtype=F64)
-        modes = torch.cat([torch.cat([modes, t.unsqueeze(-1)], -1), torch.eye(4, dtype=F64)[3:].expand(4, 1, 4)], -2)
+        modes = torch.cat(
+            [torch.cat([modes, t.unsqueeze(-1)], -1), torch.eye(4, dtype=F64)[3:].expand(4, 1, 4)], -2
+        )
     return d, MixtureOracle(d, modes, torch.tensor([0.4, 0.3, 0.2, 0.1], dtype=F64))
 
 
@@ -74,7 +76,10 @@ def test_sigma_grids() -> None:
     lg, _ = HeunSampler(d, spacing="loglinear").sigma_grid(6)
     assert float(k[2]) > float(lg[2])
     r = 1 / 7
-    assert_close(k[1], torch.tensor((sched.sigma_max**r + 0.2 * (sched.sigma_min**r - sched.sigma_max**r)) ** 7, dtype=F64))
+    assert_close(
+        k[1],
+        torch.tensor((sched.sigma_max**r + 0.2 * (sched.sigma_min**r - sched.sigma_max**r)) ** 7, dtype=F64),
+    )
     one, nxt = HeunSampler(d, spacing="karras").sigma_grid(1)
     assert one.tolist() == [sched.sigma_max] and nxt.tolist() == [0.0]
 
