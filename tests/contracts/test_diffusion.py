@@ -87,3 +87,14 @@ def test_kernel_contract_catches_a_wrong_score() -> None:
 
     with pytest.raises(AssertionError, match="score_matches_autograd"):
         kernel_contract(Wrong("so3"), checks=["score_matches_autograd"])
+
+
+def test_five_nfe_check_catches_a_many_step_sampler() -> None:
+    """The 5-NFE check can fail: the random walk, claiming few steps, is not on the modes at 5 steps."""
+    from posediff.diffusion import GeodesicRandomWalk
+
+    class Hasty(GeodesicRandomWalk):  # not registered
+        few_nfe = True
+
+    with pytest.raises(AssertionError, match="five_nfe"):
+        sampler_contract(Hasty, checks=["five_nfe"])

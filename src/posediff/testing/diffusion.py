@@ -349,7 +349,7 @@ def _sampler_five_nfe(make: Callable[[Diffusion], Sampler], device: torch.device
     modes, w = _weighted_modes()
     modes = modes.to(device)
     oracle = MixtureOracle(d, modes, w.to(device))
-    x = sampler.sample(oracle, None, 4000, sampler.steps_for_nfe(5), _gen(24), dtype=F64, device=device)[0]
+    x = sampler.sample(oracle, None, 2000, sampler.steps_for_nfe(5), _gen(24), dtype=F64, device=device)[0]
     worst, shares = _mode_shares(g, modes, x)
     shares = shares.cpu()
     assert worst < math.radians(0.5), (
