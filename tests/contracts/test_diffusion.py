@@ -89,12 +89,14 @@ def test_kernel_contract_catches_a_wrong_score() -> None:
         kernel_contract(Wrong("so3"), checks=["score_matches_autograd"])
 
 
-def test_five_nfe_check_catches_a_many_step_sampler() -> None:
-    """The 5-NFE check can fail: the random walk, claiming few steps, is not on the modes at 5 steps."""
-    from posediff.diffusion import GeodesicRandomWalk
+def test_five_nfe_check_catches_a_one_jump_sampler() -> None:
+    """The 5-NFE check can fail: one clean-pose jump from the prior (the posterior mean at σ_max) lands
+    between the modes of the weighted mixture."""
+    from posediff.diffusion import FewStepSampler
 
-    class Hasty(GeodesicRandomWalk):  # not registered
-        few_nfe = True
+    class OneJump(FewStepSampler):  # not registered
+        def steps_for_nfe(self, nfe: int) -> int:
+            return 1
 
-    with pytest.raises(AssertionError, match="five_nfe"):
-        sampler_contract(Hasty, checks=["five_nfe"])
+    with pytest.raises(AssertionError, match="five_nfe: weighted mixture"):
+        sampler_contract(OneJump, checks=["five_nfe"])
