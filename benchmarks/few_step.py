@@ -115,17 +115,23 @@ def markdown(rows: list[dict[str, Any]], students: dict[str, dict]) -> str:
             )
         lines.append("")
         ref = [r for r in mine if r["kind"] == "teacher" and r["nfe_budget"] == 100]
+        ode = [r for r in ref if r["sampler"] == "heun"]
         for r in [r for r in mine if r["nfe"] <= 5 and (r["kind"] == "student" or r["nfe"] == 5)]:
             if not ref:
                 break
             best = min(ref, key=lambda q: q["spread_deg"])
             ratio = r["spread_deg"] / best["spread_deg"]
-            lines.append(
+            text = (
                 f"- {r['sampler']} ({r['kind']}) at {r['nfe']} NFE: {r['spread_deg']:.2f}° = {ratio:.2f}× the best "
                 f"100-NFE spread ({best['sampler']}, {best['spread_deg']:.2f}°) — "
-                f"{'within' if ratio <= 1.2 else 'not within'} 1.2×; coverage {r['coverage_mean'] if r['coverage_mean'] is None else round(r['coverage_mean'], 3)} "
-                f"(best 100-NFE: {best['coverage_mean'] if best['coverage_mean'] is None else round(best['coverage_mean'], 3)})"
+                f"{'within' if ratio <= 1.2 else 'not within'} 1.2×"
             )
+            if ode:
+                text += f"; {r['spread_deg'] / ode[0]['spread_deg']:.2f}× the teacher's ODE (heun, {ode[0]['nfe']} NFE, {ode[0]['spread_deg']:.2f}°)"
+            text += (
+                f"; coverage {_c(r)} (best 100-NFE: {_c(best)}{'' if not ode else ', ODE: ' + _c(ode[0])})"
+            )
+            lines.append(text)
         info = students.get(model)
         if info:
             lines.append(
@@ -134,6 +140,10 @@ def markdown(rows: list[dict[str, Any]], students: dict[str, dict]) -> str:
             )
         lines.append("")
     return "\n".join(lines) + "\n"
+
+
+def _c(row: dict[str, Any]) -> str:
+    return "–" if row["coverage_mean"] is None else f"{row['coverage_mean']:.3f}"
 
 
 def main() -> int:
