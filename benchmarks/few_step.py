@@ -142,6 +142,34 @@ def markdown(rows: list[dict[str, Any]], students: dict[str, dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def compact(rows: list[dict[str, Any]]) -> str:
+    """One README table per model: spread ° (mean coverage of tet/cube/icosa) per sampler and NFE budget
+    (the NFE a row actually spent is at most its budget)."""
+    out = []
+    for model in dict.fromkeys(r["model"] for r in rows):
+        mine = [r for r in rows if r["model"] == model]
+        names = list(dict.fromkeys(r["sampler"] for r in mine if r["kind"] == "teacher"))
+        budgets = sorted({r["nfe_budget"] for r in mine})
+        out += [f"**{model}** — spread ° (coverage)", "", "| NFE ≤ | " + " | ".join(names) + " | student |",
+                "|" + "---|" * (len(names) + 2)]  # fmt: skip
+        for b in budgets:
+            cells = []
+            for n in [*names, None]:
+                hit = [
+                    r
+                    for r in mine
+                    if r["nfe_budget"] == b and (r["sampler"] == n if n else r["kind"] == "student")
+                ]
+                if not hit and n is not None:  # the budget's row was a duplicate of a smaller budget's
+                    hit = [
+                        max((r for r in mine if r["sampler"] == n and r["nfe"] <= b), key=lambda r: r["nfe"])
+                    ]
+                cells.append(f"{hit[0]['spread_deg']:.1f} ({_c(hit[0])})" if hit else "")
+            out.append(f"| {b} | " + " | ".join(cells) + " |")
+        out.append("")
+    return "\n".join(out)
+
+
 def _c(row: dict[str, Any]) -> str:
     return "–" if row["coverage_mean"] is None else f"{row['coverage_mean']:.3f}"
 
@@ -155,8 +183,14 @@ def main() -> int:
     ap.add_argument("--num-samples", type=int, default=100)
     ap.add_argument("--max-inputs", type=int, default=None)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--readme", type=Path, nargs="+", default=None, help="print the compact tables of these JSONs"
+    )
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "few_step.json")
     args = ap.parse_args()
+    if args.readme:
+        print("\n".join(compact(json.loads(p.read_text())["rows"]) for p in args.readme))
+        return 0
 
     from posediff import load_checkpoint
     from posediff._io import atomic_write_json, atomic_write_text
