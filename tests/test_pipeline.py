@@ -133,7 +133,10 @@ def test_eval_refusals(trained: Path, tmp_path: Path, capsys: pytest.CaptureFixt
             ["sampler.num_steps=500"],
             "sampler.num_steps must be a whole number in [1, 100] (the schedule's levels), got 500",
         ),
-        (["sampler=nope"], "unknown sampler 'nope'; available: ancestral, crouch_grossman, few_step, heun, random_walk, rkmk"),
+        (
+            ["sampler=nope"],
+            "unknown sampler 'nope'; available: ancestral, crouch_grossman, few_step, heun, random_walk, rkmk",
+        ),
         ([f"ckpt_path={tmp_path / 'none.ckpt'}"], "not found"),
     ]
     for extra, message in cases:
