@@ -1,6 +1,7 @@
 """Shared pytest setup: offscreen-safe environment, a --device option, a seeded generator."""
 
 import os
+import signal
 
 import pytest
 import torch
@@ -14,6 +15,12 @@ try:
     import triton  # noqa: F401
 except Exception:  # not installed (CPU-only torch) or broken: nothing to protect against
     pass
+
+# A shell starts a background job (`make test &`, `nohup ... &` in a script) with SIGINT ignored, and
+# an ignored signal stays ignored across exec: the Ctrl-C tests' subprocesses would never see their
+# SIGINT. Python's own handler here resets to the default in every child the tests start.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
