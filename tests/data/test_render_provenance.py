@@ -345,6 +345,32 @@ def test_interrupt_in_process_leaves_only_whole_shards(
     assert len(SymsolShards(tmp_path, split="test")) == 12
 
 
+@pytest.mark.parametrize("presses", [1, 2])
+def test_ctrl_c_in_process_is_taken_between_images(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, presses: int
+) -> None:
+    """A real SIGINT inside the renderer: the first lets the image finish (then the render stops
+    before the next one); a second stops at once."""
+    real, calls, finished = SymsolRenderer.render, [0], []
+
+    def render(self, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        calls[0] += 1
+        if calls[0] == 7:  # inside the second shard
+            for _ in range(presses):
+                os.kill(os.getpid(), signal.SIGINT)
+            finished.append(True)
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(SymsolRenderer, "render", render)
+    with pytest.raises(KeyboardInterrupt):
+        _render(tmp_path, n_per_shape=6)
+    assert calls[0] == 7 and finished == ([True] if presses == 1 else [])
+    split = tmp_path / "test"
+    assert sorted(p.name for p in split.glob("shard-*.npz")) == ["shard-00000.npz"]
+    assert not list(split.glob(".*.tmp"))
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 def _children(pid: int) -> list[int]:
     out = []
     for stat in Path("/proc").glob("[0-9]*/stat"):

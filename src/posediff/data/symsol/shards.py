@@ -20,7 +20,10 @@ format (``posediff-symsol/1``, shards without provenance) cannot be checked and 
 Every file is written to a temporary name in the same folder and renamed, so an interrupted render
 leaves only whole shards; running the same command again renders only the missing ones. With
 ``workers`` > 1 the pool's processes ignore SIGINT: on Ctrl-C the parent terminates them, removes
-their temporary files and raises ``KeyboardInterrupt`` (one traceback, not one per process). Shards
+their temporary files and raises ``KeyboardInterrupt`` (one traceback, not one per process). In one
+process a Ctrl-C is taken between two images, never inside the renderer: a ``KeyboardInterrupt``
+raised inside pyrender, trimesh or networkx can be swallowed there (trimesh catches ``BaseException``
+around its imports) and surface later as an unrelated error; a second Ctrl-C stops at once. Shards
 are zip archives of ``.npy`` members (readable with ``numpy.load``) written with fixed timestamps
 and deflate level 1, so equal seeds give byte-identical files.
 
@@ -340,10 +343,13 @@ def _render_shard(args: tuple[Path, int, np.ndarray, np.ndarray, np.ndarray, np.
     n = len(idx)
     rgb = np.empty((n, image_size, image_size, 3), np.uint8)
     depth = np.empty((n, image_size, image_size), np.uint16)
-    for j in range(n):
-        out = renderer.render(int(shape_id[j]), R[j], t[j])
-        rgb[j] = out.rgb
-        depth[j] = np.round(out.depth / DEPTH_SCALE).astype(np.uint16)
+    with _sigint_between_images() as interrupted:
+        for j in range(n):
+            out = renderer.render(int(shape_id[j]), R[j], t[j])
+            rgb[j] = out.rgb
+            depth[j] = np.round(out.depth / DEPTH_SCALE).astype(np.uint16)
+            if interrupted():
+                raise KeyboardInterrupt
     write_npz(
         path, {"rgb": rgb, "depth": depth, "index": idx.astype(np.int64), "provenance": np.array([record])}
     )
@@ -357,6 +363,31 @@ def _worker_renderer(image_size: int) -> SymsolRenderer:
     if image_size not in _RENDERERS:
         _RENDERERS[image_size] = SymsolRenderer(image_size)
     return _RENDERERS[image_size]
+
+
+@contextmanager
+def _sigint_between_images() -> Iterator[Any]:
+    """Defer the first Ctrl-C to the caller's next check (``interrupted()``); a second one raises at
+    once. Nothing changes off the main thread or where SIGINT is ignored (a pool worker, a background
+    job) or handled by someone else than Python's default."""
+    flag: list[bool] = []
+    if (
+        threading.current_thread() is not threading.main_thread()
+        or signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+    ):
+        yield lambda: False
+        return
+
+    def handler(signum: int, frame: Any) -> None:
+        if flag:
+            raise KeyboardInterrupt
+        flag.append(True)
+
+    signal.signal(signal.SIGINT, handler)
+    try:
+        yield lambda: bool(flag)
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def _ignore_sigint() -> None:
