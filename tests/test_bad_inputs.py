@@ -68,6 +68,7 @@ class Case:
     message: str  # a part of the one line
     code: int = 2
     interrupt: Callable[[Env], bool] | None = None  # send SIGINT once this holds
+    lines: int = 1  # lines on stderr (a sweep: one per failed job, then the count)
     after: Callable[[Env], None] | None = None  # extra checks on the case folder
 
 
@@ -219,6 +220,54 @@ def _score(env: Env, field: int | None = None, value: str = "") -> list[str]:
     return ["score", _score_csv(env, field, value), f"data.root={env.bop}", "vsd=false", _run(env)]
 
 
+def _edited_ckpt(env: Env, name: str, edit: Callable[[dict], None]) -> Path:
+    """A copy of the toy checkpoint with ``edit`` applied to its dict (config or weights)."""
+    ckpt = torch.load(env.ckpt, weights_only=True)
+    edit(ckpt)
+    torch.save(ckpt, env.dir / name)
+    return env.dir / name
+
+
+def _set_levels(c: dict) -> None:
+    c["posediff_config"]["module"]["diffusion"]["schedule"]["num_levels"] = 1_000_000
+
+
+def _set_width(c: dict) -> None:
+    c["posediff_config"]["module"]["denoiser"]["hidden_dim"] = 2_000_000
+
+
+def _nan_weight(c: dict) -> None:
+    key = next(k for k, v in c["state_dict"].items() if v.is_floating_point() and v.numel() > 1)
+    c["state_dict"][key] = c["state_dict"][key].clone().fill_(float("nan"))
+
+
+def _reshaped_weight(c: dict) -> None:
+    key = next(k for k, v in c["state_dict"].items() if v.is_floating_point() and v.dim() == 2)
+    c["state_dict"][key] = torch.zeros(3, 3)
+
+
+def _other_run(env: Env) -> Path:
+    folder = env.dir / "earlier"
+    (folder / ".hydra").mkdir(parents=True)
+    (folder / ".hydra" / "config.yaml").write_text("seed: 1\n")
+    (folder / "metrics.json").write_text("{}")
+    return folder
+
+
+def _sweep_failed(env: Env) -> None:
+    jobs = sorted((env.dir / "sweep").glob("*/failed.json"))
+    assert len(jobs) == 1 and "num_samples" in jobs[0].read_text(), jobs
+
+
+def _export_with_user_file(env: Env) -> Path:
+    out = env.dir / "exp"
+    code = subprocess.run([*POSEDIFF, "export", f"ckpt_path={env.ckpt}", "format=torchscript", "num_steps=2",
+                           f"out={out}"], capture_output=True, text=True, cwd=env.dir)  # fmt: skip
+    assert code.returncode == 0, code.stderr[-2000:]
+    (out / "my_notes.txt").write_text("mine")
+    return out
+
+
 CASES = [
     # ---- checkpoints
     Case("ckpt_payload_eval", "refused, naming the key; the payload never runs",
@@ -347,6 +396,63 @@ CASES = [
     Case("encoder_weights_missing", "the file named",
          lambda e: ["fit", *SYMSOL, "data.mode=render", "data.n_per_shape_train=2",
                     f"encoder.weights={e.dir / 'none.pt'}", _run(e)], "none.pt"),
+    # ---- the command line (Hydra's own errors, paths, option values)
+    Case("unknown_key", "one line: the closest keys and how to add a new one",
+         lambda e: ["fit", *TOY, "trainer.max_step=3", _run(e)], "unknown key trainer.max_step: did you mean trainer.max_steps"),
+    Case("experiment_twice", "one line: give one experiment",
+         lambda e: ["fit", "+experiment=toy_so3", "+experiment=toy_se3", _run(e)], "experiment is given more than once"),
+    Case("path_with_quote", "the path is read as written (quoted for Hydra)",
+         lambda e: ["eval", f"ckpt_path={e.dir}/it's.ckpt", _run(e)], "it's.ckpt not found"),
+    Case("path_with_equals_comma_bracket", "the path is read as written (quoted for Hydra)",
+         lambda e: ["eval", f"ckpt_path={e.dir}/a=b,[1].ckpt", _run(e)], "a=b,[1].ckpt not found"),
+    Case("path_unicode", "the path is read as written (quoted for Hydra)",
+         lambda e: ["eval", f"ckpt_path={e.dir}/données.ckpt", _run(e)], "données.ckpt not found"),
+    Case("path_tilde", "~ is expanded",
+         lambda e: ["eval", "ckpt_path=~/posediff-no-such.ckpt", _run(e)], f"{Path.home()}/posediff-no-such.ckpt not found"),
+    Case("option_text_num_samples", "the key named with its bounds",
+         lambda e: ["eval", f"ckpt_path={e.ckpt}", "num_samples=abc", _run(e)], "num_samples must be a whole number"),
+    Case("option_text_sampler_steps", "the key named with its bounds",
+         lambda e: ["eval", f"ckpt_path={e.ckpt}", "sampler.num_steps=abc", _run(e)], "sampler.num_steps must be"),
+    Case("fit_lr_negative", "refused before training (was a 40-line optimizer traceback)",
+         lambda e: ["fit", *TOY, "module.lr=-1", _run(e)], "module.lr must be", after=_no_checkpoints),
+    Case("fit_lr_nan", "refused before training",
+         lambda e: ["fit", *TOY, "module.lr=nan", _run(e)], "module.lr must be", after=_no_checkpoints),
+    Case("fit_num_noisy_zero", "refused before training",
+         lambda e: ["fit", *TOY, "module.num_noisy=0", _run(e)], "module.num_noisy must be", after=_no_checkpoints),
+    Case("fit_seed_negative", "refused before training",
+         lambda e: ["fit", *TOY, "seed=-1", _run(e)], "seed must be", after=_no_checkpoints),
+    Case("fit_image_size_huge", "refused before anything is built (was PIL out of memory)",
+         lambda e: ["fit", *SYMSOL, f"data.root={e.symsol}", "data.image_size=60000", _run(e)],
+         "data.image_size must be", after=_no_checkpoints),
+    Case("predict_min_mode_weight", "refused before sampling",
+         lambda e: ["predict", f"ckpt_path={e.ckpt}", "index=0", "min_mode_weight=2", _run(e)], "min_mode_weight must be"),
+    Case("predict_mode_radius_inf", "refused before sampling",
+         lambda e: ["predict", f"ckpt_path={e.ckpt}", "index=0", "mode_radius_deg=inf", _run(e)], "mode_radius_deg must be"),
+    # ---- sizes and weights read from a file
+    Case("ckpt_million_levels", "refused before anything is built (was a 90 s walk)",
+         lambda e: ["predict", f"ckpt_path={_edited_ckpt(e, 'l.ckpt', _set_levels)}", "index=0", _run(e)],
+         "num_levels = 1000000 is out of bounds"),
+    Case("ckpt_huge_layer", "refused before allocating (was 12-32 GB)",
+         lambda e: ["eval", f"ckpt_path={_edited_ckpt(e, 'w.ckpt', _set_width)}", _run(e)],
+         "hidden_dim = 2000000 is out of bounds"),
+    Case("ckpt_nan_weights_eval", "refused, naming the weight (was exit 0 with NaN metrics)",
+         lambda e: ["eval", f"ckpt_path={_edited_ckpt(e, 'n.ckpt', _nan_weight)}", _run(e)],
+         "NaN/infinite", after=_no_metrics),
+    Case("ckpt_nan_weights_predict", "refused, naming the weight (was a NaN poses.json, or a segfault)",
+         lambda e: ["predict", f"ckpt_path={_edited_ckpt(e, 'n.ckpt', _nan_weight)}", "index=0", _run(e)],
+         "NaN/infinite"),
+    Case("ckpt_tensor_other_shape", "refused, naming the tensor (was a traceback)",
+         lambda e: ["predict", f"ckpt_path={_edited_ckpt(e, 's.ckpt', _reshaped_weight)}", "index=0", _run(e)],
+         "do not fit the architecture"),
+    # ---- runs never mix; sweeps say when a job failed
+    Case("run_dir_of_another_run", "refused: that folder holds another run's files",
+         lambda e: ["eval", f"ckpt_path={e.ckpt}", f"hydra.run.dir={_other_run(e)}"], "holds another run's files"),
+    Case("sweep_job_fails", "exit 2: the failed job's line, then how many failed (failed.json in its folder)",
+         lambda e: ["eval", f"ckpt_path={e.ckpt}", "-m", "num_samples=1,0", f"hydra.sweep.dir={e.dir / 'sweep'}"],
+         "1 of 2 jobs failed", lines=2, after=_sweep_failed),
+    Case("export_overwrite_user_file", "refused: a file posediff did not write is never deleted",
+         lambda e: ["export", f"ckpt_path={e.ckpt}", "format=torchscript", "num_steps=2",
+                    f"out={_export_with_user_file(e)}", "overwrite=true"], "not written by posediff"),
     # ---- Ctrl-C
     Case("fit_ctrl_c", "exit 130, one line: the step reached and how to resume",
          lambda e: ["fit", *[a for a in TOY if not a.startswith("trainer.max_steps")], "trainer.max_steps=100000",
@@ -431,8 +537,8 @@ def test_bad_input_gets_one_line(case: Case, results: dict[str, tuple]) -> None:
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert "Traceback" not in err + out, err[-3000:]
     assert code == case.code, (code, err[-2000:])
-    assert len(lines) == 1 and lines[0].startswith("posediff"), lines[-20:]
-    assert case.message in lines[0], lines[0]
+    assert len(lines) == case.lines and all(ln.startswith("posediff") for ln in lines), lines[-20:]
+    assert case.message in lines[-1], lines[-1]
     after = _snapshot(case_env.dir)
     damaged = [k for k, v in before.items() if after.get(k) != v]
     assert not damaged, f"files changed or removed: {damaged}"

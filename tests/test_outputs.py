@@ -10,8 +10,10 @@ from posediff._io import (
     OutputFolderError,
     check_output_dir,
     make_output_dir,
+    recorded_files,
     remove_own_dir,
     replace_dir,
+    seal_output_dir,
 )
 from posediff.cli import main
 
@@ -59,6 +61,7 @@ def test_foreign_folder_is_left_alone(work: Path) -> None:
 def test_own_folder_is_replaced(work: Path) -> None:
     old = make_output_dir(work / "out", "test")
     (old / "stale.txt").write_text("old")
+    seal_output_dir(old, "test")  # what a finished run records
     new = make_output_dir(work / "out.partial", "test")
     (new / "fresh.txt").write_text("new")
     replace_dir(new, work / "out", "test")
@@ -67,6 +70,30 @@ def test_own_folder_is_replaced(work: Path) -> None:
     empty = work / "empty"
     empty.mkdir()
     check_output_dir(empty, "test")  # an empty folder loses nothing
+
+
+def test_a_users_file_in_posediffs_folder_is_never_deleted(work: Path) -> None:
+    """overwrite=true used to delete a file a user put into a folder posediff made (the marker covered
+    the folder, not the files); now the marker lists what posediff wrote and anything else refuses."""
+    old = make_output_dir(work / "out.partial", "test")
+    (old / "result.txt").write_text("posediff's")
+    replace_dir(old, work / "out", "test")
+    assert recorded_files(work / "out") == {"result.txt"}
+    (work / "out" / "my_notes.txt").write_text("mine")
+    (work / "out" / "mine").mkdir()
+    new = make_output_dir(work / "again.partial", "test")
+    with pytest.raises(OutputFolderError, match=r"not written by posediff \(mine, my_notes.txt\)"):
+        replace_dir(new, work / "out", "test")
+    with pytest.raises(OutputFolderError, match="not written by posediff"):
+        check_output_dir(work / "out", "test")
+    with pytest.raises(OutputFolderError, match="not written by posediff"):
+        remove_own_dir(work / "out", "test")
+    assert (work / "out" / "my_notes.txt").read_text() == "mine"
+    assert (work / "out" / "result.txt").is_file()
+    (work / "out" / "my_notes.txt").unlink()
+    (work / "out" / "mine").rmdir()
+    replace_dir(new, work / "out", "test")  # only posediff's own files left: replaced
+    assert not (work / "out" / "result.txt").exists()
 
 
 def test_paths_under_a_file_and_files(work: Path) -> None:

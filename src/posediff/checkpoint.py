@@ -57,7 +57,29 @@ def read_checkpoint(path: str | os.PathLike[str], map_location: Any = "cpu") -> 
         check_config(ckpt[CONFIG_KEY], where=f"checkpoint {p}")
     except UntrustedConfigError as e:
         raise CheckpointError(str(e)) from None
+    from .options import OptionError, check_options
+
+    try:  # sizes from a file are checked before anything is built (a million levels, 2e6-wide layers …)
+        check_options(ckpt[CONFIG_KEY], where=f"checkpoint {p}")
+    except OptionError as e:
+        raise CheckpointError(str(e)) from None
     return ckpt
+
+
+def check_finite_state(state: dict[str, Any], where: str) -> None:
+    """Refuse (one line) a state dict with a NaN or infinite weight: sampling with it gives NaN poses
+    (and NaN crop boxes crash torchvision's ``roi_align``); the first such tensor is named."""
+    for key, value in state.items():
+        if (
+            isinstance(value, torch.Tensor)
+            and value.is_floating_point()
+            and not bool(torch.isfinite(value).all())
+        ):
+            bad = int((~torch.isfinite(value)).sum())
+            raise CheckpointError(
+                f"{where}: weight {key} holds {bad} NaN/infinite value(s) (a diverged or damaged run); "
+                "use an earlier checkpoint of the run (best.ckpt, or retrain with a lower module.lr)"
+            )
 
 
 def checkpoint_group(config: dict[str, Any]) -> str:
@@ -127,7 +149,16 @@ def module_from_checkpoint(ckpt: dict[str, Any], path: str | os.PathLike[str] = 
     module = instantiate(module_cfg)
     if not isinstance(module, PoseDiffusionModule):
         raise CheckpointError(f"{path}: its module config builds {type(module).__name__}")
-    module.load_state_dict(ckpt["state_dict"])
+    check_finite_state(ckpt["state_dict"], f"checkpoint {path}")
+    try:
+        module.load_state_dict(ckpt["state_dict"])
+    except RuntimeError as e:  # a tensor of another shape, or keys of another architecture
+        lines = [ln.strip() for ln in str(e).splitlines()[1:] if ln.strip()]
+        detail = lines[0] if lines else str(e).splitlines()[0]
+        raise CheckpointError(
+            f"checkpoint {path}: its weights do not fit the architecture its config describes ({detail}); "
+            "the file is damaged or was edited"
+        ) from None
     module.config = config
     module.eval()
     return module
@@ -154,6 +185,7 @@ __all__ = [
     "CONFIG_KEY",
     "CheckpointError",
     "check_compatible",
+    "check_finite_state",
     "checkpoint_group",
     "checkpoint_shapes",
     "load_checkpoint",

@@ -5,6 +5,7 @@ everything Hydra does (``key=value`` overrides, ``-m`` multirun, ``--cfg job``, 
 """
 
 import os
+import re
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -122,42 +123,96 @@ def _unknown_config_choice(args: Sequence[str], conf: Path) -> str | None:
 
 
 def input_error_line(e: BaseException) -> str | None:
-    """The one line of an input error posediff raised (a ``ValueError`` / ``OSError`` subclass defined
-    in posediff: checkpoints, data, outputs), also when Hydra or a DataLoader worker wrapped it;
-    ``None`` for anything else (a bug, shown with its traceback)."""
-    seen = 0
-    while e is not None and seen < 8:
-        cls = type(e)
-        if cls.__module__.startswith("posediff") and issubclass(cls, (ValueError, OSError)):
-            lines = [ln.strip() for ln in str(e).strip().splitlines() if ln.strip()]
-            if not lines:
-                return cls.__name__
-            if lines[0].startswith("Caught ") and len(lines) > 1:  # re-raised from a DataLoader worker
-                last = lines[-1]
-                return last.split(": ", 1)[1] if last.startswith(cls.__name__ + ":") else last
-            return lines[0]
-        e, seen = e.__cause__ or e.__context__, seen + 1
-    return None
+    """The one line of an error the user can fix (:func:`posediff.errors.one_line`), also when Hydra
+    or a DataLoader worker wrapped it; ``None`` for anything else (a bug, shown with its traceback)."""
+    from .errors import one_line
+
+    return one_line(e)
 
 
-def _run_dir_problem(args: Sequence[str]) -> str | None:
+#: options whose values are paths: ``~`` is expanded, and characters Hydra's grammar reserves
+#: (``= , [ ] ' "``, spaces, non-ASCII letters) are quoted for the user
+PATH_KEYS = ("ckpt_path", "image", "csv", "out", "dir", "data.root", "encoder.weights", "hydra.run.dir",
+             "hydra.sweep.dir")  # fmt: skip
+_PLAIN = re.compile(r"[A-Za-z0-9_./:@%+-]*")
+
+
+def prepare_args(args: Sequence[str], multirun: bool) -> list[str]:
+    """The command line as Hydra should read it: path values (:data:`PATH_KEYS`) with ``~`` expanded
+    and quoted where Hydra's grammar would split or refuse them (a comma too, unless ``-m`` makes it
+    a sweep); every other argument unchanged."""
+    out = []
+    for arg in args:
+        key, eq, value = arg.partition("=")
+        if not eq or key.lstrip("+~") not in PATH_KEYS or value[:1] in ("'", '"') or "${" in value:
+            out.append(arg)
+            continue
+        if value.startswith("~"):
+            value = os.path.expanduser(value)
+        if not _PLAIN.fullmatch(value) and not (multirun and "," in value):
+            quote = '"' if "'" in value else "'"
+            escaped = value.replace(quote, "\\" + quote)  # Hydra: a backslash escapes only a quote
+            value = quote + escaped + ("\\" if escaped.endswith("\\") else "") + quote
+        out.append(f"{key}={value}")
+    return out
+
+
+#: what a run folder holds once a run wrote there (Hydra's record, posediff's outputs)
+RUN_FILES = (".hydra", "metrics.json", "poses.json", "poses.npz", "checkpoints", "distill.json")
+
+
+def _run_dir_problem(name: str, args: Sequence[str]) -> str | None:
     """Why the Hydra run / sweep folder of ``args`` cannot be written (a file in its path, no
-    permission), checked before Hydra creates it; ``None`` when it can."""
+    permission, another run's files in it), checked before Hydra creates it; ``None`` when it can.
+
+    A folder that holds another run's files (:data:`RUN_FILES`) is refused — runs never mix — except
+    for ``fit`` resuming a checkpoint of that very folder (``ckpt_path=<dir>/checkpoints/…``)."""
     from ._io import OutputFolderError, check_output_dir
 
     multirun = any(a in ("-m", "--multirun") for a in args)
     key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
     folder = "multirun" if multirun else "outputs"
-    for a in args:
-        if a.startswith(key + "="):
-            folder = a.split("=", 1)[1]
+    given = False
+    values = {a.split("=", 1)[0].lstrip("+"): a.split("=", 1)[1] for a in args if "=" in a}
+    if key in values:
+        folder, given = values[key], True
     if "${" in folder:
         return None  # an interpolation: Hydra resolves it
     try:
         check_output_dir(folder, "run", replace=False, key=key)
     except OutputFolderError as e:
         return str(e)
+    path = Path(folder)
+    if given and path.is_dir() and name != "report":
+        held = [f for f in RUN_FILES if (path / f).exists()]
+        ckpt = values.get("ckpt_path")
+        resume = name == "fit" and ckpt and Path(ckpt).resolve().is_relative_to(path.resolve())
+        if held and not resume:
+            return (
+                f"{key}={folder} holds another run's files ({', '.join(held)}); runs never share a "
+                "folder — give a new one (or resume that run: posediff fit ckpt_path="
+                f"{path / 'checkpoints' / 'last.ckpt'} {key}={folder})"
+            )
     return None
+
+
+def _record_failure(name: str, code: int, message: str | None) -> None:
+    """In a multirun, a failed job leaves ``failed.json`` in its folder for ``posediff report``."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        hc = HydraConfig.get()
+        if hc.mode != RunMode.MULTIRUN:
+            return
+        from ._io import atomic_write_json
+
+        atomic_write_json(
+            Path(hc.runtime.output_dir) / "failed.json",
+            {"command": name, "exit_code": code, "message": message, "overrides": list(hc.overrides.task)},
+        )
+    except Exception:  # noqa: BLE001 - the record is a courtesy; the exit code already says it
+        pass
 
 
 def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
@@ -165,11 +220,14 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
     from omegaconf import DictConfig
 
     from . import tasks
-    from .config import register_resolvers
+    from .config import new_run_id, register_resolvers
     from .data.bop import commands as bop_commands
     from .data.symsol import commands as symsol_commands
+    from .errors import hydra_line
+    from .options import check_options
 
     register_resolvers()
+    new_run_id()  # outputs/<command>/<time>_<token>: a folder of its own even in the same second
     task: Callable[[DictConfig], int] = {
         "check": tasks.check_group,
         "fit": tasks.fit,
@@ -185,59 +243,121 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
         "data make-bop": bop_commands.make_bop,
     }[name]
     conf = config_dir()
+    prefix = f"posediff {name}"
     if not (conf / f"{cmd.config}.yaml").exists():
         return _fail(
             f"no config {cmd.config}.yaml in {conf} (set POSEDIFF_CONFIG_DIR to a posediff conf/ folder)"
         )
-    problem = _unknown_config_choice(args, conf)
+    multirun = any(a in ("-m", "--multirun") for a in args)
+    plain = [a if "=" not in a or not a.partition("=")[2].startswith("~") else
+             f"{a.partition('=')[0]}={os.path.expanduser(a.partition('=')[2])}" for a in args]  # fmt: skip
+    problem = _unknown_config_choice(plain, conf)
     if problem:
         return _fail(problem)
-    problem = _run_dir_problem(args)
+    problem = _run_dir_problem(name, plain)
     if problem:
-        return _fail(problem, prefix=f"posediff {name}")
-    result: dict[str, int] = {}
+        return _fail(problem, prefix=prefix)
+    codes: list[int] = []
+    state = {"in_task": False}
 
     def _main(cfg: DictConfig) -> None:
         from omegaconf.errors import MissingMandatoryValue
 
+        state["in_task"] = True
+        message = None
         try:
-            result["code"] = task(cfg)
+            check_options(cfg)  # every numeric option, before anything is built
+            code = task(cfg)
         except MissingMandatoryValue as e:
             key = e.full_key or "a key"
-            result["code"] = _fail(
-                f"{key} is required ({key}=...; posediff {name} --help lists the options)",
-                prefix=f"posediff {name}",
-            )
-        except Exception as e:  # noqa: BLE001 - posediff's own input errors become one line; others propagate
+            message = f"{key} is required ({key}=...; posediff {name} --help lists the options)"
+            code = _fail(message, prefix=prefix)
+        except Exception as e:  # noqa: BLE001 - input errors become one line; others propagate
             message = input_error_line(e)
             if message is None:
                 raise
-            result["code"] = _fail(message, prefix=f"posediff {name}")
+            code = _fail(message, prefix=prefix)
+        codes.append(int(code or 0))
+        if code:
+            _record_failure(name, int(code), message)
 
     # argparse cannot take overrides on both sides of a flag: `posediff eval a=1 -m b=1,2` is
     # documented usage, so Hydra's -m/--multirun goes first
     flags = [a for a in args if a in ("-m", "--multirun")]
-    args = flags + [a for a in args if a not in flags]
+    rest = prepare_args([a for a in args if a not in flags], multirun)
     argv = sys.argv
     # Lightning's DDP launcher re-executes sys.argv for the other ranks: make that a runnable script
     os.environ["POSEDIFF_COMMAND"] = name
-    sys.argv = [str(_PKG / "_relaunch.py"), *args]
+    user_full_error = os.environ.get("HYDRA_FULL_ERROR")
+    os.environ.setdefault("HYDRA_FULL_ERROR", "1")  # Hydra raises instead of printing 3-6 lines; see below
+    sys.argv = [str(_PKG / "_relaunch.py"), *flags, *rest]
     try:
         hydra.main(config_path=str(conf), config_name=cmd.config, version_base="1.3")(_main)()
+    except Exception as e:
+        if user_full_error or state["in_task"]:
+            raise  # a bug in a task (input errors were taken above), or the user asked for Hydra's trace
+        message = hydra_line(e, rest) or input_error_line(e)
+        if message is None:
+            raise
+        return _fail(message, prefix=prefix)
     finally:
         sys.argv = argv
-    return result.get("code", 0)
+        if user_full_error is None:
+            os.environ.pop("HYDRA_FULL_ERROR", None)
+    if len(codes) > 1 and any(codes):
+        failed = sum(1 for c in codes if c)
+        print(f"{prefix}: {failed} of {len(codes)} jobs failed (each said why above; posediff report lists them)",
+              file=sys.stderr)  # fmt: skip
+    return max(codes, default=0)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``posediff <command> ...``: the exit code (0 ok, 2 bad input, 130 interrupted)."""
+    """``posediff <command> ...``: the exit code (0 ok, 2 bad input, 130 interrupted, 141 output
+    closed early — ``posediff ... | head -1`` ends quietly, as Unix tools do)."""
     try:
-        return _main(argv)
+        code = _main(argv)
+        sys.stdout.flush()  # a full or closed stdout fails here, not in the interpreter's exit
+        return code
     except KeyboardInterrupt as e:
         what = f"{e}; " if str(e) else ""
         print(f"posediff: interrupted (Ctrl-C); {what}files already written are whole (written to temporary "
               "names, then renamed)", file=sys.stderr)  # fmt: skip
         return 130
+    except BrokenPipeError:
+        _silence_stdout()
+        return 141
+    except OSError as e:
+        from .errors import DISK_ERRNOS, disk_line
+
+        if e.errno not in DISK_ERRNOS:
+            raise
+        if e.filename is None and _stdout_is_device():
+            _silence_stdout()
+            print(f"posediff: cannot write to standard output ({e.strerror}); redirect it to a file or "
+                  "folder with room", file=sys.stderr)  # fmt: skip
+        else:
+            _silence_stdout()
+            print(f"posediff: {disk_line(e)}", file=sys.stderr)
+        return 2
+
+
+def _stdout_is_device() -> bool:
+    """stdout is a device that is not a terminal (``> /dev/full``)."""
+    import stat
+
+    try:
+        return stat.S_ISCHR(os.fstat(sys.stdout.fileno()).st_mode) and not sys.stdout.isatty()
+    except (OSError, ValueError):
+        return False
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null so that the interpreter's last flush cannot fail again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
 
 
 def _main(argv: Sequence[str] | None = None) -> int:

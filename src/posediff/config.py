@@ -6,10 +6,22 @@
 * ``${posediff.has_translation:${group._target_}}`` — whether the group's poses carry a translation.
 * ``${posediff.pose_input_dim:${group._target_},${module.pose_input}}`` — the width of what the
   denoiser sees of a noisy pose (:meth:`posediff.module.PoseDiffusionModule.pose_input_dim`).
+* ``${posediff.run_id:}`` — a random token, new for every command (:func:`new_run_id`), so that two
+  runs started in the same second get their own folders (``outputs/fit/<time>_<token>``).
 """
+
+import secrets
 
 from hydra.utils import get_class
 from omegaconf import OmegaConf
+
+_RUN_ID = [secrets.token_hex(3)]
+
+
+def new_run_id() -> str:
+    """A new token for ``${posediff.run_id:}`` (``posediff.cli`` draws one per command)."""
+    _RUN_ID[0] = secrets.token_hex(3)
+    return _RUN_ID[0]
 
 
 def _tangent_dim(target: str) -> int:
@@ -34,5 +46,7 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("posediff.not", lambda x: not bool(x))
     if not OmegaConf.has_resolver("posediff.has_translation"):
         OmegaConf.register_new_resolver("posediff.has_translation", _has_translation)
+    if not OmegaConf.has_resolver("posediff.run_id"):
+        OmegaConf.register_new_resolver("posediff.run_id", lambda: _RUN_ID[0])
     if not OmegaConf.has_resolver("posediff.pose_input_dim"):
         OmegaConf.register_new_resolver("posediff.pose_input_dim", _pose_input_dim)

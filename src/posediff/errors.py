@@ -1,0 +1,160 @@
+"""The one place where an error a user caused becomes one line.
+
+``posediff <command>`` prints ``posediff <command>: <one line>`` and exits 2 for every error that
+:func:`one_line` recognises; anything else is a bug and keeps its traceback. Recognised are:
+
+* posediff's own input errors — any ``ValueError`` / ``OSError`` subclass defined in a posediff
+  module (checkpoints, data, options, outputs), also when Hydra, Lightning or a DataLoader worker
+  wrapped it (the exception chain is followed);
+* a full or read-only disk, a quota, a lost network file system (``OSError`` with ``ENOSPC``,
+  ``EDQUOT``, ``EROFS``, ``EIO``) anywhere in the chain — every file posediff writes goes to a
+  temporary name in its folder first, so nothing half-written is left under a final name;
+* Hydra's own command-line errors (:func:`hydra_line`): an unknown key (with the closest known
+  ones), a config group given twice, an override its grammar cannot parse (with how to quote it).
+"""
+
+from __future__ import annotations
+
+import difflib
+import errno
+import re
+from collections.abc import Iterator
+
+#: ``errno`` values that mean "the disk cannot take the file", not a bug.
+DISK_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO, errno.EFBIG}
+
+
+def _chain(e: BaseException | None, limit: int = 12) -> Iterator[BaseException]:
+    seen: set[int] = set()
+    while e is not None and id(e) not in seen and len(seen) < limit:
+        seen.add(id(e))
+        yield e
+        e = e.__cause__ or e.__context__
+
+
+def first_line(e: BaseException) -> str:
+    """The first non-empty line of ``str(e)`` (the class name when empty)."""
+    for line in str(e).strip().splitlines():
+        if line.strip():
+            return line.strip()
+    return type(e).__name__
+
+
+def _posediff_line(e: BaseException) -> str:
+    lines = [ln.strip() for ln in str(e).strip().splitlines() if ln.strip()]
+    if not lines:
+        return type(e).__name__
+    if lines[0].startswith("Caught ") and len(lines) > 1:  # re-raised from a DataLoader worker
+        last = lines[-1]
+        name = type(e).__name__
+        return last.split(": ", 1)[1] if last.startswith(name + ":") else last
+    return lines[0]
+
+
+def disk_line(e: OSError) -> str:
+    """``no space left on device writing FILE; free space or ...`` for a disk-full style ``OSError``."""
+    what = {
+        errno.ENOSPC: "no space left on device",
+        errno.EDQUOT: "disk quota exceeded",
+        errno.EROFS: "read-only file system",
+        errno.EIO: "input/output error",
+        errno.EFBIG: "file too large for the file system",
+    }.get(e.errno or 0, e.strerror or "cannot write")
+    where = f" writing {e.filename}" if e.filename else ""
+    return (
+        f"{what}{where}; nothing half-written was left under a final name — free space (or choose "
+        "another out= / hydra.run.dir=) and run again"
+    )
+
+
+def one_line(e: BaseException) -> str | None:
+    """The one line for an error the user can fix (module docstring), else ``None`` (a bug)."""
+    for err in _chain(e):
+        cls = type(err)
+        if cls.__module__.startswith("posediff") and issubclass(cls, (ValueError, OSError)):
+            return _posediff_line(err)
+    for err in _chain(e):
+        if isinstance(err, OSError) and err.errno in DISK_ERRNOS:
+            return disk_line(err)
+        if isinstance(err, RuntimeError) and re.search(
+            r"file write failed|No space left|PytorchStreamWriter failed", str(err)
+        ):
+            return disk_line(OSError(errno.ENOSPC, "no space left on device"))
+    return None
+
+
+# --------------------------------------------------------------------------------------------------
+# Hydra's command-line errors
+# --------------------------------------------------------------------------------------------------
+
+
+def _known_keys(node: object) -> list[str]:
+    try:
+        return [str(k) for k in node.keys()]  # type: ignore[attr-defined]
+    except Exception:  # noqa: BLE001 - no parent node to suggest from
+        return []
+
+
+def hydra_line(e: BaseException, args: list[str]) -> str | None:
+    """One line for an error Hydra raised while composing the command line's config, else ``None``."""
+    try:
+        from hydra.errors import HydraException, OverrideParseException
+        from omegaconf.errors import OmegaConfBaseException
+    except ImportError:  # pragma: no cover
+        return None
+    if not isinstance(e, (HydraException, OmegaConfBaseException)):
+        return None
+    text = str(e)
+    cause = e.__cause__
+    # unknown key: "Could not override 'trainer.max_step'." ← "Key 'max_step' is not in struct"
+    m = re.search(r"Could not override '([^']+)'", text)
+    if m and cause is not None and "not in struct" in str(cause):
+        key = m.group(1)
+        parent, _, leaf = key.rpartition(".")
+        known = _known_keys(getattr(cause, "parent_node", None))
+        close = difflib.get_close_matches(leaf, known, n=3, cutoff=0.6)
+        hint = (
+            f"did you mean {' or '.join((parent + '.' if parent else '') + c for c in close)}? "
+            if close
+            else ""
+        )
+        value = next((a.split("=", 1)[1] for a in args if a.split("=", 1)[0].lstrip("+~") == key), "...")
+        return f"unknown key {key}: {hint}(+{key}={value} adds a new key; --cfg job lists the keys)"
+    m = re.search(r"Multiple values for (\S+?)\.", text)
+    if m:
+        group = m.group(1)
+        given = [a for a in args if a.lstrip("+~").split("=", 1)[0] == group]
+        return f"{group} is given more than once ({' '.join(given) or group}); give one {group}=..."
+    m = re.search(r"Ambiguous value for argument '([^']+)'", text)
+    if m:
+        arg = m.group(1)
+        key, _, value = arg.partition("=")
+        return (
+            f"{arg}: a comma makes a list or a sweep; quote it to keep it one value ({key}='{value}'), "
+            f"write {key}=[{value}] for a list, or add -m to sweep"
+        )
+    if isinstance(e, OverrideParseException) or "override_grammar" in text:
+        bad = next((a for a in args if a in text), None) or first_line(e)
+        key, _, value = bad.partition("=")
+        return (
+            f"cannot read the override {bad!r} (Hydra's grammar reserves = , [ ] ( ) ' \" and spaces in "
+            f"values): quote the value, e.g. {_quoted(key, value)}"
+        )
+    m = re.search(r"Could not append to config. An item is already at '([^']+)'", text)
+    if m:
+        return f"+{m.group(1)}=... adds a key that exists already; write {m.group(1)}=... to change it"
+    line = first_line(e)
+    if cause is not None and isinstance(cause, OmegaConfBaseException):
+        line = f"{line} {first_line(cause)}"
+    return f"{line} (posediff <command> --help lists the options)"
+
+
+def _quoted(key: str, value: str) -> str:
+    """``key="value"`` (Hydra's quoting) written so that a POSIX shell passes it through unchanged."""
+    quote = '"' if "'" in value else "'"
+    escaped = value.replace("\\", "\\\\").replace(quote, "\\" + quote)
+    hydra_arg = f"{key}={quote}{escaped}{quote}"
+    return "'" + hydra_arg.replace("'", "'\\''") + "'"
+
+
+__all__ = ["DISK_ERRNOS", "disk_line", "first_line", "hydra_line", "one_line"]
