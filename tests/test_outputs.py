@@ -129,9 +129,14 @@ def test_make_bop_overwrites_its_own_output_only(work: Path, capsys: pytest.Capt
     fx = work / "fx"
     assert main(["data", "make-bop", f"out={fx}", *BOP_SMALL]) == 0
     assert (fx / MARKER).is_file()
-    (fx / "mine.txt").write_text("x")
+    (fx / "mine.txt").write_text("x")  # a user's file in the folder make-bop made: never deleted
+    capsys.readouterr()
+    assert main(["data", "make-bop", f"out={fx}", "overwrite=true", *BOP_SMALL]) == 2
+    assert "holds files not written by posediff (mine.txt)" in capsys.readouterr().err
+    assert (fx / "mine.txt").read_text() == "x"
+    (fx / "mine.txt").unlink()
     assert main(["data", "make-bop", f"out={fx}", "overwrite=true", *BOP_SMALL]) == 0
-    assert not (fx / "mine.txt").exists() and (fx / "test_targets_bop19.json").is_file()
+    assert (fx / "test_targets_bop19.json").is_file()
     other = work / "data"
     other.mkdir()
     (other / "scans.bin").write_bytes(b"\x00" * 10)

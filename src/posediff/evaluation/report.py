@@ -158,6 +158,9 @@ def collect_sweep(
     if not root.is_dir():
         raise FileNotFoundError(f"no folder {root} (give the multirun folder of posediff eval -m ...)")
     files = sorted(root.glob("*/metrics.json")) or sorted(root.glob("metrics.json"))
+    failed = failed_jobs(root)
+    if not files and failed:
+        raise FileNotFoundError(f"every job under {root} failed: " + "; ".join(failed))
     if not files:
         raise FileNotFoundError(f"no */metrics.json under {root} (is it a posediff eval output folder?)")
     results = []
@@ -171,6 +174,8 @@ def collect_sweep(
         raise FileNotFoundError(f"no evaluation results (metrics.json with 'overall') under {root}")
     rows = sweep_rows(results)
     table = sweep_table(rows)
+    if failed:
+        table += f"\n\n{len(failed)} failed job(s), not in the table:\n" + "\n".join(f"- {f}" for f in failed)
     if write:
         ckpt = results[0].get("ckpt_path", "?")
         n = results[0].get("num_samples", "?")
@@ -181,6 +186,22 @@ def collect_sweep(
         )
         atomic_write_json(root / "report.json", rows)
     return rows, table
+
+
+def failed_jobs(sweep_dir: str | os.PathLike[str]) -> list[str]:
+    """``job <n> (<overrides>): <message>`` for every job of a sweep that left ``failed.json``
+    (written by ``posediff.cli`` when a job exits non-zero), or whose folder has no ``metrics.json``."""
+    root = Path(sweep_dir)
+    out = []
+    for job in sorted((d for d in root.iterdir() if d.is_dir() and (d / ".hydra").is_dir()), key=lambda d: d.name):
+        if (job / "metrics.json").is_file():
+            continue
+        try:
+            info = json.loads((job / "failed.json").read_text())
+            out.append(f"job {job.name} ({' '.join(info.get('overrides', []))}): {info.get('message')}")
+        except (OSError, ValueError):
+            out.append(f"job {job.name}: no metrics.json (it failed or was interrupted)")
+    return out
 
 
 class ReportCallback(Callback):
@@ -243,6 +264,7 @@ def fit_markdown(results: dict[str, Any]) -> str:
 
 
 __all__ = [
+    "failed_jobs",
     "fit_markdown",
     "headline",
     "AXIS_COLUMNS",
