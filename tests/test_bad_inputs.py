@@ -412,7 +412,7 @@ CASES = [
     Case("option_text_num_samples", "the key named with its bounds",
          lambda e: ["eval", f"ckpt_path={e.ckpt}", "num_samples=abc", _run(e)], "num_samples must be a whole number"),
     Case("option_text_sampler_steps", "the key named with its bounds",
-         lambda e: ["eval", f"ckpt_path={e.ckpt}", "sampler.num_steps=abc", _run(e)], "sampler.num_steps must be"),
+         lambda e: ["eval", f"ckpt_path={e.ckpt}", "sampler.num_steps=abc", _run(e)], "sampler.num_steps must be a whole number"),
     Case("fit_lr_negative", "refused before training (was a 40-line optimizer traceback)",
          lambda e: ["fit", *TOY, "module.lr=-1", _run(e)], "module.lr must be", after=_no_checkpoints),
     Case("fit_lr_nan", "refused before training",

@@ -158,7 +158,7 @@ def prepare_args(args: Sequence[str], multirun: bool) -> list[str]:
 
 
 #: what a run folder holds once a run wrote there (Hydra's record, posediff's outputs)
-RUN_FILES = (".hydra", "metrics.json", "poses.json", "poses.npz", "checkpoints", "distill.json")
+RUN_FILES = ("metrics.json", "poses.json", "poses.npz", "checkpoints", "distill.json", "progress.log")
 
 
 def _run_dir_problem(name: str, args: Sequence[str]) -> str | None:

@@ -130,7 +130,8 @@ BOUNDS: dict[str, Whole | Real] = {
     "power": _POSITIVE,
     "translation_scale": _POSITIVE,
     "rotation_scale": _POSITIVE,
-    "num_steps": Whole(1, 10_000, nullable=True),
+    # a whole number (or null); its range is the schedule's levels, checked by the command that knows them
+    "num_steps": Whole(-(2**62), 2**62, nullable=True),
     "eta": Real(0.0, 1.0),
     "rho": _POSITIVE,
     "renoise": _NONNEG,
