@@ -212,7 +212,9 @@ def test_cli_bad_image_size_then_the_corrected_run(
     args = ["data", "render", "dataset=symsol", "split=test", "n_per_shape=1", "progress=false", f"out={out}"]
     assert main([*args, "image_size=-5"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err == "posediff data render: image_size must be a whole number in [8, 4096], got -5 (image_size=...)"
+    assert (
+        err == "posediff data render: image_size must be a whole number in [8, 4096], got -5 (image_size=...)"
+    )
     assert not out.exists()
     assert main([*args, "image_size=16"]) == 0
     assert "5 images in" in capsys.readouterr().out

@@ -193,7 +193,9 @@ def failed_jobs(sweep_dir: str | os.PathLike[str]) -> list[str]:
     (written by ``posediff.cli`` when a job exits non-zero), or whose folder has no ``metrics.json``."""
     root = Path(sweep_dir)
     out = []
-    for job in sorted((d for d in root.iterdir() if d.is_dir() and (d / ".hydra").is_dir()), key=lambda d: d.name):
+    for job in sorted(
+        (d for d in root.iterdir() if d.is_dir() and (d / ".hydra").is_dir()), key=lambda d: d.name
+    ):
         if (job / "metrics.json").is_file():
             continue
         try:
