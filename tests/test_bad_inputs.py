@@ -376,7 +376,7 @@ CASES = [
     # ---- posediff distill
     Case("distill_steps_zero", "steps named with its range",
          lambda e: ["distill", f"ckpt_path={e.ckpt}", "steps=0", _run(e)],
-         "steps must be a whole number in [1, 10000], got 0", after=_no_checkpoints),
+         "steps must be a whole number [1, 100], got 0", after=_no_checkpoints),
     Case("distill_missing_checkpoint", "not found, and where fit writes them",
          lambda e: ["distill", f"ckpt_path={e.dir / 'none.ckpt'}", _run(e)], "not found"),
     # ---- SYMSOL data

@@ -183,7 +183,8 @@ def _run_dir_problem(name: str, args: Sequence[str]) -> str | None:
     except OutputFolderError as e:
         return str(e)
     path = Path(folder)
-    if given and path.is_dir() and name != "report":
+    relaunched = os.environ.get("LOCAL_RANK", "0") != "0" or os.environ.get("NODE_RANK", "0") != "0"
+    if given and path.is_dir() and name != "report" and not relaunched:  # DDP ranks > 0 share rank 0's folder
         held = [f for f in RUN_FILES if (path / f).exists()]
         ckpt = values.get("ckpt_path")
         resume = name == "fit" and ckpt and Path(ckpt).resolve().is_relative_to(path.resolve())

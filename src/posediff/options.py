@@ -167,7 +167,7 @@ BOUNDS: dict[str, Whole | Real] = {
     "mode_radius_deg": Real(0.0, 180.0, open_low=True),
     "min_mode_weight": Real(0.0, 1.0, open_high=True),
     "vsd_delta": Real(0.0, open_low=True, nullable=True),
-    "steps": Whole(1, 10_000),
+    "steps": Whole(-(2**62), 2**62),  # distill: its range is the teacher's levels, checked by the command
     "substeps": Whole(1, 10_000),
     "num_hypotheses": Whole(1, 65_536),
     "reuse": Whole(1, 10_000),
