@@ -193,7 +193,7 @@ def test_predict_test_sample_with_trajectory(trained: Path, tmp_path: Path) -> N
         (["image={notimage}"], "is not an image"),
         ([], "give exactly one of image=PATH"),
         (["index=999"], "index=999 but the test data has 4 samples"),
-        (["image={notimage}", "num_samples=0"], "num_samples must be a whole number ≥ 1"),
+        (["image={notimage}", "num_samples=0"], "num_samples must be a whole number in [1, 100000]"),
     ],
 )
 def test_predict_bad_input(
