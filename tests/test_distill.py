@@ -76,12 +76,21 @@ def test_grid_is_the_few_step_samplers(teacher: Path) -> None:
 
 
 def test_training_lowers_the_loss(teacher: Path) -> None:
+    """Adam on the student's loss over a fixed pool of teacher trajectories lowers that loss.
+
+    The student starts as a copy of the teacher, close to its optimum (loss ~0.02-0.07). At lr 3e-3
+    the first updates overshoot (the loss rose 2-4x by step 10) and where it stood at step 60 depended
+    on how that overshoot settled: last/first 0.30-0.83 over seeds, 0.83 on an Intel CPU against a 0.8
+    bound. At lr 3e-4 the loss falls smoothly: last/first after 60 updates was 0.034-0.080 over 32
+    draws (4 teachers of seeds 0-3 x 8 pool seeds; 0.073 for this one), so the bound 0.3 has a 4x
+    margin, while a student that is not updated stays at 1.0 (the test fails with lr=0)."""
     torch.manual_seed(0)
     module = load_checkpoint(teacher)
-    dist = SegmentDistillation(module, steps=3, num_hypotheses=8, substeps=2, lr=3e-3)
+    lr = 3e-4
+    dist = SegmentDistillation(module, steps=3, num_hypotheses=8, substeps=2, lr=lr)
     cond = torch.randn(8, 17, generator=torch.Generator().manual_seed(2))
     feature, states = dist.teacher_pool(cond, torch.Generator().manual_seed(3))
-    opt = torch.optim.Adam([p for p in dist.student.denoiser.parameters()], lr=3e-3)
+    opt = torch.optim.Adam([p for p in dist.student.denoiser.parameters()], lr=lr)
     with torch.no_grad():
         first = float(dist.student_loss(feature, states))
     for _ in range(60):
@@ -90,7 +99,7 @@ def test_training_lowers_the_loss(teacher: Path) -> None:
         opt.step()
     with torch.no_grad():
         last = float(dist.student_loss(feature, states))
-    assert last < 0.8 * first, (first, last)
+    assert last < 0.3 * first, (first, last, last / first)
 
 
 def test_steps_zero_and_a_missing_teacher_get_one_line(
