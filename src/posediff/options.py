@@ -47,6 +47,8 @@ class Whole:
     def describe(self) -> str:
         extra = f" (or {', '.join(map(str, self.allow))})" if self.allow else ""
         null = " or null" if self.nullable else ""
+        if self.least <= -(2**62):  # a type check only: the command checks the range it knows
+            return f"a whole number{null}"
         return f"a whole number in [{self.least}, {self.most}]{extra}{null}"
 
 
