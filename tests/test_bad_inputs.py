@@ -10,6 +10,7 @@ fixture, a tiny SYMSOL-T render — are made in-process once.
 from __future__ import annotations
 
 import copy
+import json
 import os
 import shutil
 import signal
@@ -20,6 +21,7 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -52,6 +54,7 @@ class Env:
     ckpt: Path
     bop: Path
     symsol: Path
+    image_ckpt: Path  # a 2-step image model on the symsol renders
     dir: Path = field(default_factory=Path)
 
     def copy_of(self, src: Path, name: str) -> Path:
@@ -70,6 +73,9 @@ class Case:
     interrupt: Callable[[Env], bool] | None = None  # send SIGINT once this holds
     lines: int = 1  # lines on stderr (a sweep: one per failed job, then the count)
     after: Callable[[Env], None] | None = None  # extra checks on the case folder
+    environ: Callable[[Env], dict[str, str]] | None = None  # extra environment variables
+    stdout: str = "pipe"  # "pipe"; "closed": a reader that has gone (`| head -1`); "full": > /dev/full
+    file_limit: int | None = None  # a largest file size in bytes (RLIMIT_FSIZE): a disk that fills up
 
 
 def _tampered(env: Env) -> Path:
@@ -174,23 +180,46 @@ def _sentinel_intact(env: Env) -> None:
 
 
 def _whole_shards(env: Env) -> None:
-    for p in (env.dir / "ctrlc").rglob("*.npz"):
+    shards = list((env.dir / "ctrlc").rglob("*.npz"))
+    assert 0 < len(shards) < 250, f"{len(shards)} of 250 shards: interrupted part way"
+    for p in shards:
         with np.load(p) as z:
             list(z.keys())
     assert not list((env.dir / "ctrlc").rglob("*.tmp")), "no half-written files"
 
 
-def _started_rendering(env: Env) -> bool:
-    return any((env.dir / "ctrlc").rglob("*.npz"))
+#: tests/_interrupt_hooks/sitecustomize.py: a render's processes pause before their second shard's rename
+HOOKS = Path(__file__).resolve().parent / "_interrupt_hooks"
+
+
+def _paused_render(env: Env) -> dict[str, str]:
+    """Not a race with the render: each of its processes writes one shard, then pauses (the hook)."""
+    path = os.pathsep.join([str(HOOKS), *filter(None, [os.environ.get("PYTHONPATH")])])
+    return {
+        "PYTHONPATH": path,
+        "POSEDIFF_TEST_PAUSE_DIR": str(env.dir / "paused"),
+        "POSEDIFF_TEST_PAUSE_AFTER": "1",
+    }
+
+
+def _render_paused(env: Env) -> bool:
+    return any((env.dir / "paused").glob("paused-*"))
 
 
 def _run(env: Env) -> str:
     return f"hydra.run.dir={env.dir / 'run'}"
 
 
-def _score_csv(env: Env, field: int | None = None, value: str = "") -> str:
+def _score_csv(
+    env: Env,
+    field: int | None = None,
+    value: str | Callable[[str], str] = "",
+    tail: bytes = b"",
+    bom: bool = False,
+) -> str:
     """A BOP19 CSV of the fixture's ground truth (one row per target instance) with field ``field`` of
-    its second row (line 3) replaced by ``value``; returns the ``csv=`` override."""
+    its second row (line 3) replaced by ``value`` (or by ``value(old)``), ``tail`` appended and a UTF-8
+    byte-order mark in front if ``bom``; returns the ``csv=`` override."""
     import json
 
     lines = ["scene_id,im_id,obj_id,score,R,t,time"]
@@ -202,10 +231,10 @@ def _score_csv(env: Env, field: int | None = None, value: str = "") -> str:
                 lines.append(f"{t['scene_id']},{t['im_id']},{g['obj_id']},1.0,{R},{tt},0.5")
     if field is not None:
         row = lines[2].split(",")
-        row[field] = value
+        row[field] = value(row[field]) if callable(value) else value
         lines[2] = ",".join(row)
     path = env.dir / "method_bop-test.csv"
-    path.write_text("\n".join(lines) + "\n")
+    path.write_bytes(b"\xef\xbb\xbf" * bom + ("\n".join(lines) + "\n").encode() + tail)
     return f"csv={path}"
 
 
@@ -216,8 +245,17 @@ def _existing(env: Env) -> Path:
     return folder
 
 
-def _score(env: Env, field: int | None = None, value: str = "") -> list[str]:
-    return ["score", _score_csv(env, field, value), f"data.root={env.bop}", "vsd=false", _run(env)]
+def _score(
+    env: Env, field: int | None = None, value: str | Callable[[str], str] = "", **kw: Any
+) -> list[str]:
+    return ["score", _score_csv(env, field, value, **kw), f"data.root={env.bop}", "vsd=false", _run(env)]
+
+
+def _rotation_edit(edit: Callable[[np.ndarray], np.ndarray]) -> Callable[[str], str]:
+    """A CSV ``R`` field (9 numbers, row-major) → the same field of ``edit(R)``."""
+    return lambda old: " ".join(
+        repr(float(v)) for v in edit(np.array(old.split(), float).reshape(3, 3)).ravel()
+    )
 
 
 def _edited_ckpt(env: Env, name: str, edit: Callable[[dict], None]) -> Path:
@@ -252,6 +290,30 @@ def _other_run(env: Env) -> Path:
     (folder / ".hydra" / "config.yaml").write_text("seed: 1\n")
     (folder / "metrics.json").write_text("{}")
     return folder
+
+
+def _earlier(env: Env, name: str) -> Path:
+    """A folder holding one file of an earlier run (``name``, e.g. ``poses.json``)."""
+    folder = env.dir / "earlier"
+    (folder / name).parent.mkdir(parents=True, exist_ok=True)
+    (folder / name).write_bytes(b"an earlier run's file")
+    return folder
+
+
+def _nothing_half_written(env: Env) -> None:
+    """After a write failed: no temporary file is left, and no final name holds a fragment."""
+    temps = [
+        p
+        for p in env.dir.rglob("*")
+        if p.is_file() and (p.name.endswith((".tmp", ".partial")) or ".tmp" in p.name)
+    ]
+    assert not temps, temps
+    for p in env.dir.rglob("*.npz"):
+        with np.load(p) as z:
+            list(z.keys())
+    for p in env.dir.rglob("*.json"):
+        if p.parent.name != "earlier":
+            json.loads(p.read_text())
 
 
 def _sweep_failed(env: Env) -> None:
@@ -447,12 +509,57 @@ CASES = [
     # ---- runs never mix; sweeps say when a job failed
     Case("run_dir_of_another_run", "refused: that folder holds another run's files",
          lambda e: ["eval", f"ckpt_path={e.ckpt}", f"hydra.run.dir={_other_run(e)}"], "holds another run's files"),
+    Case("predict_over_a_prediction", "refused: the folder holds an earlier prediction (was overwritten)",
+         lambda e: ["predict", f"ckpt_path={e.ckpt}", "index=0", f"hydra.run.dir={_earlier(e, 'poses.json')}"],
+         "holds another run's files"),
+    Case("fit_into_another_run", "refused: the folder holds another run's checkpoint (was mixed with it)",
+         lambda e: ["fit", *TOY, f"hydra.run.dir={_earlier(e, 'checkpoints/last.ckpt')}"], "holds another run's files"),
     Case("sweep_job_fails", "exit 2: the failed job's line, then how many failed (failed.json in its folder)",
          lambda e: ["eval", f"ckpt_path={e.ckpt}", "-m", "num_samples=1,0", f"hydra.sweep.dir={e.dir / 'sweep'}"],
          "1 of 2 jobs failed", lines=2, after=_sweep_failed),
     Case("export_overwrite_user_file", "refused: a file posediff did not write is never deleted",
          lambda e: ["export", f"ckpt_path={e.ckpt}", "format=torchscript", "num_steps=2",
                     f"out={_export_with_user_file(e)}", "overwrite=true"], "not written by posediff"),
+    # ---- results files: rotations are checked, encodings named
+    Case("score_R_scaled", "the file and line: R is a rotation scaled by 2 (was scored as right)",
+         lambda e: _score(e, 4, _rotation_edit(lambda R: 2 * R)), "method_bop-test.csv:3: R looks like a rotation scaled by 2"),
+    Case("score_R_reflection", "the file and line: R has det -1, a reflection (was scored)",
+         lambda e: _score(e, 4, _rotation_edit(lambda R: -R)), "method_bop-test.csv:3: R has det -1"),
+    Case("score_R_zeros", "the file and line: R is all zeros (was scored)",
+         lambda e: _score(e, 4, "0 0 0 0 0 0 0 0 0"), "method_bop-test.csv:3: R is all zeros"),
+    Case("score_latin1", "the file, line and byte: not UTF-8 (was no file, no line)",
+         lambda e: _score(e, tail="# m\xe9thode\n".encode("latin-1")), "not UTF-8 text (byte 0xe9"),
+    Case("score_byte_order_mark", "read as written, scored (was blamed on \"could not convert 'R'\")",
+         lambda e: _score(e, bom=True), "AR", code=0, lines=0),
+    # ---- image paths that are not image files
+    Case("predict_image_folder", "a folder, not an image file (was \"not found\")",
+         lambda e: ["predict", f"ckpt_path={e.ckpt}", f"image={e.dir}", _run(e)], "is a folder, not an image file"),
+    Case("predict_image_device", "not a regular file (was \"not found\")",
+         lambda e: ["predict", f"ckpt_path={e.ckpt}", "image=/dev/null", _run(e)], "is not a regular file"),
+    # ---- export sizes
+    Case("export_onnx_many_steps", "refused at once, with the bound (was still unrolling after 14 min)",
+         lambda e: ["export", f"ckpt_path={e.ckpt}", "format=onnx", "num_steps=50", f"out={e.dir / 'x'}"],
+         "above max_unrolled=20", after=lambda e: not (e.dir / "x").exists() or pytest.fail("export wrote")),
+    # ---- full disks and closed outputs
+    Case("render_disk_full", "one line naming the file; no half-written shard (was a traceback)",
+         lambda e: [*RENDER, "split=test", f"out={e.dir / 'r'}"], "file too large for the file system writing",
+         file_limit=1500,  # meta.json and index.npz fit, a shard does not
+         after=_nothing_half_written),
+    Case("predict_disk_full", "one line naming the file; nothing half-written (was a traceback)",
+         lambda e: ["predict", f"ckpt_path={e.image_ckpt}", "index=0", "num_samples=50", _run(e)],
+         "file too large for the file system writing", file_limit=5000,  # .hydra fits, poses.npz does not
+         after=_nothing_half_written),
+    Case("eval_disk_full", "one line naming the file; nothing half-written (was a traceback)",
+         lambda e: ["eval", f"ckpt_path={e.image_ckpt}", "num_samples=2", "hydra.output_subdir=null", _run(e)],
+         "file too large for the file system writing", file_limit=1000,  # metrics.md fits, metrics.json not
+         after=_nothing_half_written),
+    Case("stdout_closed", "quiet, exit 141, as Unix tools under `| head -1` (was a traceback)",
+         lambda e: ["check", "group=so3"], "", code=141, lines=0, stdout="closed"),
+    Case("stdout_full", "one line: cannot write to standard output (was a traceback)",
+         lambda e: ["check", "group=so3"], "cannot write to standard output", stdout="full"),
+    Case("render_osmesa", "one line: how to render offscreen here (was a 65-line traceback)",
+         lambda e: [*RENDER, "split=test", f"out={e.dir / 'r'}"], "PYOPENGL_PLATFORM=osmesa",
+         environ=lambda e: {"PYOPENGL_PLATFORM": "osmesa"}),
     # ---- Ctrl-C
     Case("fit_ctrl_c", "exit 130, one line: the step reached and how to resume",
          lambda e: ["fit", *[a for a in TOY if not a.startswith("trainer.max_steps")], "trainer.max_steps=100000",
@@ -460,12 +567,19 @@ CASES = [
          interrupt=lambda e: "step" in _text(e.dir / "run" / "progress.log")),
     Case("render_ctrl_c", "exit 130, one line; every shard on disk is whole",
          lambda e: [*RENDER[:-4], "n_per_shape=400", "shard_size=8", "progress=false", f"out={e.dir / 'ctrlc'}"],
-         "interrupted", code=130, interrupt=_started_rendering, after=_whole_shards),
+         "interrupted", code=130, interrupt=_render_paused, after=_whole_shards, environ=_paused_render),
 ]  # fmt: skip
 
 
 def _snapshot(root: Path) -> dict[str, bytes]:
     return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+#: runs the CLI with its largest file size limited to argv[1] bytes (RLIMIT_FSIZE): the disk is "full"
+#: once a file would pass it (Python ignores SIGXFSZ, so the write fails with EFBIG)
+LIMITED = [sys.executable, "-c", "import resource, sys; from posediff.cli import main; "
+           "resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[1]), resource.RLIM_INFINITY)); "
+           "sys.exit(main(sys.argv[2:]))"]  # fmt: skip
 
 
 def _execute(case: Case, env: Env) -> tuple[int, str, str, dict[str, bytes]]:
@@ -476,14 +590,30 @@ def _execute(case: Case, env: Env) -> tuple[int, str, str, dict[str, bytes]]:
     cwd.mkdir(exist_ok=True)
     (cwd / "notes.txt").write_text("my notes")
     before = {**before, "work/notes.txt": b"my notes"}
+    command = [*POSEDIFF, *args] if case.file_limit is None else [*LIMITED, str(case.file_limit), *args]
+    stdout: Any = subprocess.PIPE
+    if case.stdout == "closed":  # the reading end closed before anything is written: `| head -0`
+        read_end, stdout = os.pipe()
+        os.close(read_end)
+    elif case.stdout == "full":
+        stdout = open("/dev/full", "w")  # noqa: SIM115 - closed below
     proc = subprocess.Popen(
-        [*POSEDIFF, *args],
+        command,
         cwd=cwd,
-        stdout=subprocess.PIPE,
+        stdout=stdout,
         stderr=subprocess.PIPE,
         text=True,
-        env={**os.environ, "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "1"},
+        env={
+            **os.environ,
+            "PYTHONWARNINGS": "ignore",
+            "OMP_NUM_THREADS": "1",
+            **(case.environ(env) if case.environ else {}),
+        },
     )
+    if case.stdout == "closed":
+        os.close(stdout)
+    elif case.stdout == "full":
+        stdout.close()
     if case.interrupt is not None:  # Ctrl-C once the case is where it should be interrupted
         deadline = time.monotonic() + 400  # (under load, starting torch and the renderer can take minutes)
         while not case.interrupt(env) and proc.poll() is None and time.monotonic() < deadline:
@@ -494,7 +624,7 @@ def _execute(case: Case, env: Env) -> tuple[int, str, str, dict[str, bytes]]:
     except subprocess.TimeoutExpired:
         proc.kill()
         out, err = proc.communicate()
-    return proc.returncode, out, err, before
+    return proc.returncode, out or "", err, before
 
 
 @pytest.fixture(scope="module")
@@ -510,7 +640,10 @@ def env(tmp_path_factory: pytest.TempPathFactory) -> Env:
     symsol = base / "symsol"
     for split in ("train", "test"):
         assert main([*RENDER, f"split={split}", f"out={symsol}"]) == 0
-    return Env(ckpt=run / "checkpoints" / "last.ckpt", bop=bop, symsol=symsol)
+    image = base / "image"
+    assert main(["fit", *SYMSOL, f"data.root={symsol}", f"hydra.run.dir={image}"]) == 0
+    return Env(ckpt=run / "checkpoints" / "last.ckpt", bop=bop, symsol=symsol,
+               image_ckpt=image / "checkpoints" / "last.ckpt")  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -538,7 +671,7 @@ def test_bad_input_gets_one_line(case: Case, results: dict[str, tuple]) -> None:
     assert "Traceback" not in err + out, err[-3000:]
     assert code == case.code, (code, err[-2000:])
     assert len(lines) == case.lines and all(ln.startswith("posediff") for ln in lines), lines[-20:]
-    assert case.message in lines[-1], lines[-1]
+    assert case.message in (lines[-1] if lines else out), (lines or out)[-20:]
     after = _snapshot(case_env.dir)
     damaged = [k for k, v in before.items() if after.get(k) != v]
     assert not damaged, f"files changed or removed: {damaged}"

@@ -64,3 +64,34 @@ def test_check_rejects_unknown_check() -> None:
 def test_module_entrypoint() -> None:
     res = subprocess.run([sys.executable, "-m", "posediff.cli", "--help"], capture_output=True, text=True)
     assert res.returncode == 0 and "commands:" in res.stdout
+
+
+def test_two_runs_started_in_the_same_second_get_their_own_folders(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two ``fit``s in one second shared ``outputs/fit/<stamp>`` (``.hydra``, ``metrics.json`` and
+    ``progress.log`` mixed, ``last.ckpt`` beside ``last-v1.ckpt``); the clock is frozen here, so the
+    folders differ only by the command's own token (``${posediff.run_id:}``)."""
+    from datetime import datetime
+
+    import hydra.core.utils
+    from omegaconf import OmegaConf
+
+    class Frozen(datetime):
+        @classmethod
+        def now(cls, tz=None):  # noqa: ANN001, ANN206 - datetime.now's
+            return cls(2026, 1, 1, 0, 0, 0)
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(hydra.core.utils, "datetime", Frozen)  # Hydra's ${now:} reads this
+    toy = ["+experiment=toy_so3", "trainer.max_steps=1", "trainer.enable_progress_bar=false", "data.num_train=16",
+           "data.batch_size=8", "data.num_test_per_shape=1", "module.num_noisy=2", "denoiser.hidden_dim=16",
+           "eval.before=false", "eval.num_samples=2", "eval.num_steps=[2]", "eval.samplers=null"]  # fmt: skip
+    for seed in (0, 1):
+        assert cli.main(["fit", *toy, f"seed={seed}"]) == 0
+    runs = sorted((tmp_path / "outputs" / "fit").iterdir())
+    assert len(runs) == 2 and all(r.name.startswith("2026-01-01_00-00-00_") for r in runs), runs
+    seeds = sorted(OmegaConf.load(r / ".hydra" / "config.yaml").seed for r in runs)
+    assert seeds == [0, 1]
+    for r in runs:  # each its own checkpoint, no last-v1.ckpt
+        assert sorted(p.name for p in (r / "checkpoints").iterdir()) == ["last.ckpt"], r

@@ -27,10 +27,21 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
             f.write(data)
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
+    except OSError as e:
+        Path(tmp).unlink(missing_ok=True)
+        raise named_os_error(e, path) from e
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def named_os_error(e: OSError, path: str | os.PathLike[str]) -> OSError:
+    """``e`` itself if it names a file, else the same error naming ``path`` (a write's ``OSError``
+    names no file: a full disk would be reported without saying what could not be written)."""
+    if e.filename is not None or e.errno is None:
+        return e
+    return OSError(e.errno, e.strerror, str(path))
 
 
 def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:

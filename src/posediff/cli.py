@@ -327,29 +327,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:
         _silence_stdout()
         return 141
+    except SystemExit as e:  # rich's Console exits 1 on a broken pipe, after pointing stdout elsewhere
+        if isinstance(e.__context__, BrokenPipeError):
+            _silence_stdout()
+            return 141
+        raise
     except OSError as e:
         from .errors import DISK_ERRNOS, disk_line
 
         if e.errno not in DISK_ERRNOS:
             raise
-        if e.filename is None and _stdout_is_device():
-            _silence_stdout()
-            print(f"posediff: cannot write to standard output ({e.strerror}); redirect it to a file or "
-                  "folder with room", file=sys.stderr)  # fmt: skip
-        else:
-            _silence_stdout()
-            print(f"posediff: {disk_line(e)}", file=sys.stderr)
+        _silence_stdout()
+        print(f"posediff: {disk_line(e)}", file=sys.stderr)
         return 2
-
-
-def _stdout_is_device() -> bool:
-    """stdout is a device that is not a terminal (``> /dev/full``)."""
-    import stat
-
-    try:
-        return stat.S_ISCHR(os.fstat(sys.stdout.fileno()).st_mode) and not sys.stdout.isatty()
-    except (OSError, ValueError):
-        return False
 
 
 def _silence_stdout() -> None:

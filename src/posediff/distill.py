@@ -217,25 +217,21 @@ class SegmentDistillation(L.LightningModule):
 
 
 def save_student(student: PoseDiffusionModule, config: dict[str, Any], path: Any) -> Any:
-    """Write ``student`` as a posediff checkpoint (``state_dict`` + run config; atomically)."""
-    import io
-
-    from ._io import atomic_write_bytes
+    """Write ``student`` as a posediff checkpoint (``state_dict`` + run config) atomically, as ``posediff
+    fit`` writes its checkpoints (:func:`posediff.checkpoint_io.save_torch`: a temporary name in the same
+    folder, fsynced, renamed; a full disk is a one-line :class:`~posediff.checkpoint_io.CheckpointWriteError`)."""
     from .checkpoint import CONFIG_KEY
+    from .checkpoint_io import save_torch
 
     student.config = config
-    buf = io.BytesIO()
-    torch.save(
-        {
-            "state_dict": student.state_dict(),
-            CONFIG_KEY: config,
-            "posediff_diffusion": student.diffusion.describe(),
-            "hyper_parameters": dict(student.hparams),
-            "pytorch-lightning_version": L.__version__,
-        },
-        buf,
-    )
-    return atomic_write_bytes(path, buf.getvalue())
+    checkpoint = {
+        "state_dict": student.state_dict(),
+        CONFIG_KEY: config,
+        "posediff_diffusion": student.diffusion.describe(),
+        "hyper_parameters": dict(student.hparams),
+        "pytorch-lightning_version": L.__version__,
+    }
+    return save_torch(checkpoint, path)
 
 
 __all__ = [

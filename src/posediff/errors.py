@@ -51,8 +51,23 @@ def _posediff_line(e: BaseException) -> str:
     return lines[0]
 
 
+def stdout_is_device() -> bool:
+    """Standard output is a device that is not a terminal (``> /dev/full``)."""
+    import os
+    import stat
+    import sys
+
+    try:
+        return stat.S_ISCHR(os.fstat(sys.stdout.fileno()).st_mode) and not sys.stdout.isatty()
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
 def disk_line(e: OSError) -> str:
-    """``no space left on device writing FILE; free space or ...`` for a disk-full style ``OSError``."""
+    """``no space left on device writing FILE; free space or ...`` for a disk-full style ``OSError``
+    (``cannot write to standard output`` when no file is named and stdout is a device: ``> /dev/full``)."""
+    if e.filename is None and stdout_is_device():
+        return f"cannot write to standard output ({e.strerror}); redirect it to a file or folder with room"
     what = {
         errno.ENOSPC: "no space left on device",
         errno.EDQUOT: "disk quota exceeded",

@@ -18,13 +18,32 @@ Batch size ``B`` and hypotheses ``N`` are the example's (``num_samples``, batch 
 :func:`draw_inputs` (from a sampler) and :func:`draw_from_meta` (from the JSON alone) draw ``x_init``
 and ``noise`` as :meth:`posediff.diffusion.Sampler.sample` would — the same values for the same
 generator; any other source of the same distributions works as well.
+
+The loop is unrolled: every step is a copy of the network in the graph, so the export time grows with
+the step count (faster than linearly for ONNX, whose graph optimiser dominates). The default is the
+checkpoint's sampler's own ``num_steps``, else :data:`DEFAULT_NUM_STEPS`; counts above
+:data:`MAX_UNROLLED` are refused unless ``max_unrolled`` is raised (:func:`unrolled_steps`).
+
+Each graph is serialised in memory and written from Python to a temporary name in the destination
+folder, then renamed (``posediff._io.atomic_write_bytes``): a full disk is an :class:`ExportWriteError`
+naming the folder, never a truncated file (PyTorch's own file writers abort the process from C++ when
+a write fails).
+
+Loading (:func:`load_exported`) trusts nothing in the folder: every file the JSON names must be a plain
+file name inside the folder with the format's suffix, and only ONNX (through ONNX Runtime) is loaded
+by default — ``torch.export.load`` and ``torch.jit.load`` run code a tampered file holds, so those
+formats need ``trust=True`` (only for files you made yourself).
 """
 
 from __future__ import annotations
 
 import copy
+import io
 import json
+import os
+import re
 import types
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -33,11 +52,35 @@ from torch import Tensor, nn
 
 FORMATS = ("onnx", "torchscript", "exported_program")
 META_FILE = "posediff_export.json"
+GRAPHS = ("encoder", "denoiser", "sampler")
 _SUFFIX = {"onnx": ".onnx", "torchscript": ".pt", "exported_program": ".pt2"}
+
+#: Steps unrolled into the ``sampler`` graph when neither ``num_steps`` nor the checkpoint's sampler
+#: gives a count. Measured on the toy SO(3) checkpoint (2 CPU cores, the whole ``posediff export``):
+#: ONNX 45 s at 5 steps, 82 s at 10, 4 min at 20; ExportedProgram 9 s at 5, 15 s at 10; TorchScript
+#: under a second (6 s at 100).
+DEFAULT_NUM_STEPS = 5
+
+#: The most steps each format unrolls unless ``max_unrolled`` says otherwise: ONNX's exporter time grows
+#: faster than the step count (every schedule level of the toy, 100 steps, ran for over 14 minutes);
+#: ExportedProgram grows about linearly (~1 s a step); TorchScript traces 100 steps in ~6 s (no bound).
+MAX_UNROLLED: dict[str, int | None] = {"onnx": 20, "exported_program": 50, "torchscript": None}
 
 
 class ExportError(ValueError):
     """A model or an option that cannot be exported (one line)."""
+
+
+class ExportWriteError(OSError):
+    """An exported file that could not be written (a full disk, a quota, a read-only folder): one line
+    naming the folder and the file; nothing half-written is left under the file's name."""
+
+
+class ExportedFilesError(ValueError):
+    """An export folder that :func:`load_exported` refuses to load (one line): no or a malformed
+    ``posediff_export.json``, a file entry that is not a plain file name inside the folder with the
+    format's suffix, a format whose loader runs code from the file without ``trust=True``, or a
+    ``.pt2`` archive holding pickled, compiled or unknown parts."""
 
 
 class _Wrapper(nn.Module):
@@ -138,19 +181,20 @@ def _example_shapes(module: Any, example: Tensor, num_samples: int, num_steps: i
             "sigma": (B, num_samples), "out": (B, num_samples, dim), "noise": (num_steps, B, num_samples, dim)}  # fmt: skip
 
 
-def _save(
-    model: nn.Module, args: tuple[Tensor, ...], path: Path, fmt: str, names: list[str], dynamic: dict
-) -> bool:
-    """Write one graph; returns whether its batch / hypothesis dimensions are dynamic."""
+def _serialize(
+    model: nn.Module, args: tuple[Tensor, ...], fmt: str, names: list[str], dynamic: dict
+) -> tuple[bytes, bool]:
+    """One graph's file contents, made in memory (no exporter writes to disk), and whether its batch /
+    hypothesis dimensions are dynamic."""
     import warnings
 
     model.eval()
+    buffer = io.BytesIO()
     if fmt == "torchscript":
         with warnings.catch_warnings(), torch.no_grad():
             warnings.simplefilter("ignore")  # the tracer's notes on shape checks it turns into constants
             traced = torch.jit.trace(model, args, check_trace=False)
-        traced.save(str(path))
-        return False
+        return bytes(traced.save_to_buffer()), False
     if fmt == "exported_program":
         try:
             ep = torch.export.export(model, args, dynamic_shapes=dynamic)
@@ -158,8 +202,8 @@ def _save(
         except Exception:  # noqa: BLE001 - an exporter that cannot keep a dimension dynamic: fixed shapes
             ep = torch.export.export(model, args)
             dyn = False
-        torch.export.save(ep, str(path))
-        return dyn
+        torch.export.save(ep, buffer)
+        return buffer.getvalue(), dyn
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
@@ -169,8 +213,58 @@ def _save(
         except Exception:  # noqa: BLE001
             prog = torch.onnx.export(model, args, dynamo=True, input_names=names, verbose=False)
             dyn = False
-    prog.save(str(path))
-    return dyn
+    try:
+        return prog.model_proto.SerializeToString(), dyn
+    except ValueError as e:  # protobuf's 2 GB limit for one message (the weights inline)
+        raise ExportError(
+            f"the {type(model).__name__} graph is too large for one ONNX file ({e}); "
+            "export format=exported_program or format=torchscript"
+        ) from e
+
+
+def _write(path: Path, data: bytes) -> Path:
+    """``data`` to ``path`` through a temporary name in its folder and a rename; a failed write is an
+    :class:`ExportWriteError` naming the folder (the temporary file removed)."""
+    from ._io import atomic_write_bytes
+
+    try:
+        return atomic_write_bytes(path, data)
+    except OSError as e:
+        why = e.strerror or str(e) or type(e).__name__
+        raise ExportWriteError(
+            f"cannot write {path.name} ({len(data) / 1e6:.1f} MB) in {path.parent}: {why}; "
+            "free space there or choose another out="
+        ) from e
+
+
+def unrolled_steps(
+    sampler: Any, fmt: str, num_steps: int | None = None, max_unrolled: int | None = None
+) -> tuple[int, str]:
+    """``(steps, where from)``: the steps the ``sampler`` graph unrolls — ``num_steps``, else the
+    sampler's own ``num_steps``, else :data:`DEFAULT_NUM_STEPS` (at most the schedule's levels) — and
+    ``"num_steps"``, ``"sampler"`` or ``"default"``. Refuses (:class:`ExportError`) a count outside the
+    schedule's levels, and one above ``max_unrolled`` (default :data:`MAX_UNROLLED` of ``fmt``), saying
+    how to export it anyway."""
+    levels = sampler.diffusion.schedule.num_levels
+    if num_steps is not None:
+        steps, source = num_steps, "num_steps"
+    elif getattr(sampler, "num_steps", None):
+        steps, source = sampler.num_steps, "sampler"
+    else:
+        steps, source = min(DEFAULT_NUM_STEPS, levels), "default"
+    if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= levels:
+        raise ExportError(f"num_steps must be in [1, {levels}] (the schedule's levels), got {steps!r}")
+    bound = MAX_UNROLLED.get(fmt) if max_unrolled is None else max_unrolled
+    if isinstance(bound, bool) or (bound is not None and (not isinstance(bound, int) or bound < 1)):
+        raise ExportError(f"max_unrolled must be a whole number ≥ 1, got {max_unrolled!r}")
+    if bound is not None and steps > bound:
+        what = f"num_steps={steps}" if source == "num_steps" else f"the checkpoint's sampler's {steps} steps"
+        raise ExportError(
+            f"{what} would unroll into one {fmt} graph, above max_unrolled={bound} ({fmt} export time grows "
+            f"with every unrolled step; 100 took over 14 min for ONNX): give num_steps≤{bound}, or "
+            f"max_unrolled={steps} to export all {steps} anyway"
+        )
+    return int(steps), source
 
 
 def export_module(
@@ -182,11 +276,14 @@ def export_module(
     num_steps: int | None = None,
     num_samples: int = 16,
     info: dict[str, Any] | None = None,
+    max_unrolled: int | None = None,
 ) -> dict[str, Path]:
     """Export ``module`` (a :class:`~posediff.module.PoseDiffusionModule`) in ``fmt`` into the folder
     ``out`` (module docstring). ``example``: one input batch for the encoder (e.g. ``(1, 3, S, S)``);
-    ``num_steps``: the loop's steps (default the sampler's, else every level); ``num_samples``: the
-    example's hypotheses per input. Returns name → path."""
+    ``num_steps``: the loop's steps (default the sampler's, else :data:`DEFAULT_NUM_STEPS`; above
+    ``max_unrolled``, default :data:`MAX_UNROLLED`, refused — :func:`unrolled_steps`); ``num_samples``:
+    the example's hypotheses per input. Each file is written whole or not at all; a failed write raises
+    :class:`ExportWriteError`. Returns name → path."""
     if fmt not in FORMATS:
         raise ExportError(f"unknown format {fmt!r}; choose one of: {', '.join(FORMATS)}")
     sampler = getattr(module, "sampler", None)
@@ -194,12 +291,12 @@ def export_module(
         raise ExportError(
             f"{type(module).__name__} is not a diffusion model with a sampler; nothing to export"
         )
-    levels = sampler.diffusion.schedule.num_levels
-    steps = int(num_steps if num_steps is not None else (sampler.num_steps or levels))
-    if not 1 <= steps <= levels:
-        raise ExportError(f"num_steps must be in [1, {levels}] (the schedule's levels), got {steps}")
+    steps, _ = unrolled_steps(sampler, fmt, num_steps, max_unrolled)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ExportWriteError(f"cannot make the export folder {out}: {e.strerror or e}") from e
     module = module.eval()
     if fmt != "torchscript" and int(example.shape[0]) == 1:  # a size-1 dimension cannot be exported dynamic
         example = torch.cat([example, example])
@@ -223,9 +320,9 @@ def export_module(
     files: dict[str, Path] = {}
     dynamic: dict[str, bool] = {}
     for name, (model, args, names, dyn) in graphs.items():
-        path = out / f"{name}{_SUFFIX[fmt]}"
-        dynamic[name] = _save(model, args, path, fmt, names, dyn)
-        files[name] = path
+        data, dynamic[name] = _serialize(model, args, fmt, names, dyn)
+        files[name] = _write(out / f"{name}{_SUFFIX[fmt]}", data)
+        del data
     from . import __version__
 
     meta = {
@@ -250,9 +347,7 @@ def export_module(
         "inputs": {"encoder": ["input"], "denoiser": ["x", "sigma", "cond"], "sampler": ["cond", "x_init", "noise"]},
         **(info or {}),
     }  # fmt: skip
-    from ._io import atomic_write_text
-
-    files["meta"] = atomic_write_text(out / META_FILE, json.dumps(meta, indent=2) + "\n")
+    files["meta"] = _write(out / META_FILE, (json.dumps(meta, indent=2) + "\n").encode("utf-8"))
     return files
 
 
@@ -281,18 +376,141 @@ def draw_from_meta(
     return x, noise
 
 
-def load_exported(folder: str | Path) -> tuple[dict[str, Any], dict[str, Any]]:
+#: Why a format's loader is not safe for a file someone else made (facts checked on PyTorch 2.14).
+_UNSAFE_LOADER = {
+    "exported_program": "torch.export.load unpickles parts of a .pt2 (weights or constants marked "
+    "pickled, its sample inputs), evaluates its shape expressions with sympy and runs its guard code",
+    "torchscript": "torch.jit.load runs the TorchScript code a .pt holds (its __setstate__), which can "
+    "read and overwrite files",
+}
+
+#: Every member a ``torch.export.save`` archive of posediff's graphs holds, below its root folder; a
+#: .pt2 with anything else (AOTInductor's compiled libraries, pickled legacy weights, …) is refused.
+_PT2_MEMBER = re.compile(
+    r"(archive_format|archive_version|byteorder|\.data/version|\.data/serialization_id"
+    r"|models/\w+\.json|data/sample_inputs/\w+\.pt|extra/[\w.-]+"
+    r"|data/weights/\w+_weights_config\.json|data/weights/weight_\d+"
+    r"|data/constants/\w+_constants_config\.json|data/constants/tensor_\d+)"
+)
+
+
+def _confined(folder: Path, key: str, entry: Any, suffix: str) -> Path:
+    """The file the JSON's ``files.<key>`` names, resolved: a plain file name (no folder, no ``..``,
+    not absolute) of a regular file with ``suffix`` whose real path (symbolic links followed) lies in
+    ``folder`` (resolved); :class:`ExportedFilesError` otherwise."""
+    where = f"files.{key}={entry!r} in {folder / META_FILE}"
+    if not isinstance(entry, str) or not entry:
+        raise ExportedFilesError(
+            f"{where}: not a file name; an export names its own files, e.g. {key}{suffix}"
+        )
+    if (
+        entry in (".", "..")
+        or "/" in entry
+        or "\\" in entry
+        or os.path.isabs(entry)
+        or Path(entry).name != entry
+    ):
+        raise ExportedFilesError(
+            f"{where}: not a plain file name in the export folder (a path, '..' or an absolute path); refused"
+        )
+    if not entry.endswith(suffix):
+        raise ExportedFilesError(f"{where}: not a {suffix} file, which this format's files are; refused")
+    real = (folder / entry).resolve()
+    if not real.is_relative_to(folder):
+        raise ExportedFilesError(f"{where}: leads outside the export folder (to {real}); refused")
+    if not real.is_file():
+        raise ExportedFilesError(f"{where}: no such file in {folder}; export again (posediff export)")
+    return real
+
+
+def _check_pt2(path: Path) -> None:
+    """Refuse (:class:`ExportedFilesError`) a ``.pt2`` whose loading would unpickle or run anything a
+    file holds that posediff's exports never hold: members outside :data:`_PT2_MEMBER` (AOTInductor
+    libraries, legacy pickled weights), weights or constants marked pickled or of non-tensor kinds
+    (custom and opaque objects are unpickled), and sample inputs ``torch.load(weights_only=True)``
+    refuses (``torch.export.load`` would retry them with ``weights_only=False``)."""
+    bad = f"{path.name} is not a plain torch.export archive of tensors"
+    try:
+        with zipfile.ZipFile(path) as z:
+            names = z.namelist()
+            roots = {n.split("/", 1)[0] for n in names}
+            if len(roots) != 1 or not names:
+                raise ExportedFilesError(f"{bad} (no single root folder); refused")
+            root = roots.pop() + "/"
+            for n in names:
+                if not _PT2_MEMBER.fullmatch(n[len(root) :]):
+                    raise ExportedFilesError(f"{bad}: it holds {n!r}, which posediff never writes; refused")
+            for n in names:
+                rel = n[len(root) :]
+                if rel.endswith(("_weights_config.json", "_constants_config.json")):
+                    prefix = "weight_" if "/weights/" in rel else "tensor_"
+                    config = json.loads(z.read(n)).get("config", {})
+                    for fqn, entry in config.items():
+                        if entry.get("use_pickle") or not re.fullmatch(
+                            prefix + r"\d+", str(entry.get("path_name"))
+                        ):
+                            raise ExportedFilesError(
+                                f"{bad}: {rel} marks {fqn!r} as pickled or not a tensor; refused (loading "
+                                "it would unpickle what the file holds)"
+                            )
+                elif rel.startswith("data/sample_inputs/"):
+                    try:
+                        torch.load(io.BytesIO(z.read(n)), weights_only=True)
+                    except Exception as e:  # noqa: BLE001 - anything weights_only refuses is refused
+                        raise ExportedFilesError(
+                            f"{bad}: its sample inputs {rel} are not plain tensors ({type(e).__name__}); refused"
+                        ) from e
+    except (zipfile.BadZipFile, json.JSONDecodeError, AttributeError, OSError) as e:
+        raise ExportedFilesError(f"{bad} ({type(e).__name__}: {e}); refused") from e
+
+
+def load_exported(folder: str | Path, *, trust: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
     """``(meta, runners)``: the export's JSON and one callable per graph (``encoder(input)``,
-    ``denoiser(x, sigma, cond)``, ``sampler(cond, x_init, noise)``), over torch tensors, for any format
-    (ONNX through ONNX Runtime)."""
-    folder = Path(folder)
-    meta = json.loads((folder / META_FILE).read_text(encoding="utf-8"))
+    ``denoiser(x, sigma, cond)``, ``sampler(cond, x_init, noise)``), over torch tensors.
+
+    Nothing the folder holds is trusted: each ``files`` entry must be a plain file name of a file inside
+    ``folder`` with the format's suffix (:func:`_confined`). ONNX is loaded through ONNX Runtime, which
+    runs only the ONNX operators of the graph (and refuses external weights outside the folder).
+    TorchScript and ExportedProgram loaders run code a tampered file holds (:data:`_UNSAFE_LOADER`), so
+    those formats are refused unless ``trust=True`` — only for files you made yourself; even then a
+    ``.pt2`` holding pickled or compiled parts is refused (:func:`_check_pt2`). Every refusal is an
+    :class:`ExportedFilesError` (one line)."""
+    folder = Path(folder).resolve()
+    meta_path = folder / META_FILE
+    if not meta_path.is_file():
+        raise ExportedFilesError(
+            f"no {META_FILE} in {folder}: not a posediff export folder (posediff export writes one)"
+        )
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ExportedFilesError(
+            f"{meta_path} is not valid JSON ({e}); export again (posediff export)"
+        ) from e
+    fmt = meta.get("format") if isinstance(meta, dict) else None
+    if fmt not in FORMATS:
+        raise ExportedFilesError(
+            f"{meta_path}: unknown format {fmt!r}; an export is one of: {', '.join(FORMATS)}"
+        )
+    files = meta.get("files")
+    if not isinstance(files, dict) or set(files) != set(GRAPHS):
+        raise ExportedFilesError(
+            f"{meta_path}: 'files' must name exactly the graphs {', '.join(GRAPHS)}, got "
+            f"{sorted(files) if isinstance(files, dict) else files!r}"
+        )
+    paths = {name: _confined(folder, name, files[name], _SUFFIX[fmt]) for name in GRAPHS}
+    if fmt in _UNSAFE_LOADER and not trust:
+        raise ExportedFilesError(
+            f"{folder} is a format={fmt} export, and {_UNSAFE_LOADER[fmt]}: load_exported(folder, "
+            "trust=True) loads it — only for files you made yourself — or use a format=onnx export "
+            "(ONNX Runtime runs no such code)"
+        )
     runners: dict[str, Any] = {}
-    for name, file in meta["files"].items():
-        path = folder / file
-        if meta["format"] == "torchscript":
+    for name, path in paths.items():
+        if fmt == "torchscript":
             runners[name] = torch.jit.load(str(path))
-        elif meta["format"] == "exported_program":
+        elif fmt == "exported_program":
+            _check_pt2(path)
             runners[name] = torch.export.load(str(path)).module()
         else:
             import onnxruntime as ort
@@ -309,15 +527,21 @@ def load_exported(folder: str | Path) -> tuple[dict[str, Any], dict[str, Any]]:
 
 
 __all__ = [
+    "DEFAULT_NUM_STEPS",
     "FORMATS",
+    "GRAPHS",
+    "MAX_UNROLLED",
     "META_FILE",
     "ConditionEncoder",
     "DenoiserStep",
     "ExportError",
+    "ExportWriteError",
+    "ExportedFilesError",
     "SamplingLoop",
     "draw_from_meta",
     "draw_inputs",
     "export_module",
     "load_exported",
     "noise_steps",
+    "unrolled_steps",
 ]

@@ -588,10 +588,15 @@ def distill(cfg: DictConfig) -> int:
 
 def export_checkpoint(cfg: DictConfig) -> int:
     """``posediff export``: a checkpoint's graphs in ONNX / TorchScript / ExportedProgram
-    (:func:`posediff.export.export_module`), written to ``<out>.partial`` and renamed."""
+    (:func:`posediff.export.export_module`), written to ``<out>.partial`` and renamed.
+
+    The step count the sampler graph unrolls is settled (:func:`posediff.export.unrolled_steps`:
+    ``num_steps``, else the checkpoint's sampler's, else the default; above ``max_unrolled`` refused)
+    and printed before the export starts. A write that fails (a full disk) is one line naming the
+    folder, and the unfinished ``.partial`` folder is removed: nothing is left in ``out``."""
     from ._io import OutputFolderError, check_output_dir, make_output_dir, remove_own_dir, replace_dir
     from .checkpoint import CheckpointError, load_checkpoint
-    from .export import FORMATS, ExportError, export_module
+    from .export import FORMATS, ExportError, ExportWriteError, export_module, unrolled_steps
 
     command = "posediff export"
     try:
@@ -601,6 +606,9 @@ def export_checkpoint(cfg: DictConfig) -> int:
         _whole(cfg.num_samples, "num_samples", 2)
         if cfg.num_steps is not None:
             _whole(cfg.num_steps, "num_steps")
+        max_unrolled = cfg.get("max_unrolled")
+        if max_unrolled is not None:
+            _whole(max_unrolled, "max_unrolled")
         out = Path(str(cfg.out)) if cfg.out else Path(HydraConfig.get().runtime.output_dir) / fmt
         if out.exists() and not cfg.overwrite:
             raise ExportError(f"out={out} already exists; give a new folder or overwrite=true")
@@ -618,26 +626,38 @@ def export_checkpoint(cfg: DictConfig) -> int:
         else:  # a condition of the run's own test data (the toys)
             run = OmegaConf.create(config)
             example = next(iter(_data(run).test_dataloader()))[module.cond_key][:1]
+        num_steps = None if cfg.num_steps is None else int(cfg.num_steps)
+        steps, source = unrolled_steps(module.sampler, fmt, num_steps, max_unrolled)
     except (CheckpointError, ExportError, OutputFolderError, ValueError, FileNotFoundError) as e:
         print(f"{command}: {_data_error(e) or e}", file=sys.stderr)
         return 2
+    why = {"num_steps": f"num_steps={steps}", "sampler": "the checkpoint's sampler's own count",
+           "default": "the default; the checkpoint's sampler sets none"}[source]  # fmt: skip
+    print(f"{command}: unrolling {steps} sampling step{'s' * (steps != 1)} into the {fmt} sampler graph "
+          f"({why}); num_steps=N changes it", flush=True)  # fmt: skip
     partial = out.with_name(out.name + ".partial")
-    remove_own_dir(partial, command)
-    make_output_dir(partial, command)
+    remove_own_dir(partial, command)  # refuses (one line) a .partial folder posediff did not make
     try:
+        make_output_dir(partial, command)
         files = export_module(
-            module, partial, fmt, example=example,
-            num_steps=None if cfg.num_steps is None else int(cfg.num_steps), num_samples=int(cfg.num_samples),
-            info={"ckpt_path": str(cfg.ckpt_path), "image_size": size or None},
+            module, partial, fmt, example=example, num_steps=steps, num_samples=int(cfg.num_samples),
+            info={"ckpt_path": str(cfg.ckpt_path), "image_size": size or None}, max_unrolled=max_unrolled,
         )  # fmt: skip
-    except ExportError as e:
+        replace_dir(partial, out, command)
+    except (ExportError, OutputFolderError) as e:
         remove_own_dir(partial, command)
         print(f"{command}: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # ExportWriteError (a graph or the JSON), or the folder / marker (a full disk)
+        remove_own_dir(partial, command)
+        msg = str(e) if isinstance(e, ExportWriteError) else (
+            f"cannot write in {partial}: {e.strerror or e}; free space there or choose another out="
+        )  # fmt: skip
+        print(f"{command}: out={out}: {msg}", file=sys.stderr)
         return 2
     except BaseException:
         remove_own_dir(partial, command)
         raise
-    replace_dir(partial, out, command)
     for name, path in files.items():
         print(f"{name}: {out / path.name}")
     return 0

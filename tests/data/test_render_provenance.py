@@ -385,8 +385,27 @@ def _children(pid: int) -> list[int]:
     return out
 
 
+#: tests/_interrupt_hooks/sitecustomize.py: pauses a subprocess (and its workers) before a shard's rename
+HOOKS = Path(__file__).resolve().parents[1] / "_interrupt_hooks"
+
+
+def _paused_render_env(flags: Path, after: int = 1) -> dict[str, str]:
+    """The environment of a render whose every process pauses once it has written ``after`` shards,
+    with its next shard in a temporary file, and writes ``flags/paused-<pid>`` (the hook's docstring)."""
+    pythonpath = os.pathsep.join([str(HOOKS), *filter(None, [os.environ.get("PYTHONPATH")])])
+    return {
+        **os.environ,
+        "PYTHONPATH": pythonpath,
+        "POSEDIFF_TEST_PAUSE_DIR": str(flags),
+        "POSEDIFF_TEST_PAUSE_AFTER": str(after),
+    }
+
+
 def test_ctrl_c_with_a_process_pool_leaves_whole_shards_and_one_traceback(tmp_path: Path) -> None:
-    """Ctrl-C in a terminal sends SIGINT to the whole process group: the parent and its workers."""
+    """Ctrl-C in a terminal sends SIGINT to the whole process group: the parent and its workers.
+
+    Not a race with the render: each of the two workers writes one shard, then pauses with its next
+    shard in a temporary file (tests/_interrupt_hooks), and the SIGINTs come once both have paused."""
     script = textwrap.dedent(
         """
         import sys
@@ -395,20 +414,26 @@ def test_ctrl_c_with_a_process_pool_leaves_whole_shards_and_one_traceback(tmp_pa
                        shard_size=10, workers=2, progress=False)
         """
     )
-    out = tmp_path / "ds"
+    out, flags = tmp_path / "ds", tmp_path / "paused"
     proc = subprocess.Popen(
         [sys.executable, "-c", script, str(out)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        env=_paused_render_env(flags),
         start_new_session=True,  # its own process group, as a terminal's foreground job
     )
     split = out / "train"
     try:
         deadline = time.monotonic() + 240
-        while not list(split.glob("shard-*.npz")) and proc.poll() is None and time.monotonic() < deadline:
+        while len(list(flags.glob("paused-*"))) < 2 and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert proc.poll() is None, "the render ended before it could be interrupted"
+        if proc.poll() is not None:
+            pytest.fail(f"the render ended before both workers paused:\n{proc.communicate()[1][-3000:]}")
+        paused = sorted(p.name for p in flags.glob("paused-*"))
+        assert len(paused) == 2, f"after 240 s, paused: {paused} (the hook pauses in os.replace)"
+        # where the render stands: two whole shards, and the next shard of each worker half done
+        assert len(list(split.glob("shard-*.npz"))) == 2 and len(list(split.glob(".*.tmp"))) == 2
         # the workers first (in a terminal the order is not fixed): they must ignore it and go on
         for pid in _children(proc.pid):
             os.kill(pid, signal.SIGINT)
@@ -425,7 +450,7 @@ def test_ctrl_c_with_a_process_pool_leaves_whole_shards_and_one_traceback(tmp_pa
     assert err.rstrip().endswith("KeyboardInterrupt"), err[-3000:]
     assert err.splitlines().count("KeyboardInterrupt") == 1 and "PoolWorker" not in err, err[-3000:]
     shards = sorted(split.glob("shard-*.npz"))
-    assert 0 < len(shards) < 150, "interrupted part way"
+    assert len(shards) == 2 < 150, "interrupted part way: the shards written before the pause, no more"
     assert not list(split.glob(".*.tmp")), "temporary files of the terminated workers are removed"
     for shard in shards:  # every shard on disk is whole
         with np.load(shard) as z:

@@ -121,3 +121,22 @@ def test_torchvision_trunk_names_match_every_arch() -> None:
     for arch in ("resnet18", "resnet34", "resnet50"):
         names = tuple(n for n, _ in getattr(torchvision.models, arch)().named_children())
         assert names[:-2] == _TORCHVISION_TRUNK
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_a_non_finite_crop_box_is_an_error_before_roi_align(bad: float) -> None:
+    """torchvision's roi_align crashed the process (SIGSEGV, nothing printed) on NaN boxes; the crop
+    refuses them first, also when they come from a NaN locator inside ``forward``."""
+    from posediff.nn.pose_encoder import CropBoxError
+
+    enc = PoseEncoder(image_size=32, crop_size=16, out_dim=8).eval()
+    image = torch.rand(2, 3, 32, 32, generator=torch.Generator().manual_seed(0))
+    t = torch.tensor([[0.0, 0.0, 0.0], [bad, 0.0, 0.0]])
+    with pytest.raises(CropBoxError, match="not finite"):
+        enc.crop(image, t)
+    with torch.no_grad():
+        for p in enc.locator.parameters():
+            p.fill_(bad)
+    with pytest.raises(CropBoxError, match="not finite"):
+        enc(image)
+    enc.crop(image, torch.zeros(2, 3))  # finite boxes still crop

@@ -28,6 +28,51 @@ CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 _GL_READY = False
 
+#: what to install for each platform PyOpenGL can render offscreen with (Debian / Ubuntu packages)
+_PLATFORM_PACKAGES = {
+    "egl": "libegl1 libegl-mesa0 libgl1-mesa-dri",
+    "osmesa": "libosmesa6",
+}
+
+
+class OffscreenGLError(OSError):
+    """No offscreen OpenGL on this machine with the chosen ``PYOPENGL_PLATFORM`` (its library is
+    missing, or it cannot make a context). One line: the platform, the cause and what to do."""
+
+
+def _gl_error(e: BaseException) -> OffscreenGLError:
+    platform = os.environ.get("PYOPENGL_PLATFORM", "egl")
+    detail = " ".join(str(a) for a in getattr(e, "args", ()) if a) or type(e).__name__
+    detail = detail.replace("\n", " ")[:200]
+    packages = _PLATFORM_PACKAGES.get(platform)
+    fix = f"install {packages} (apt)" if packages else "it is not a platform posediff has been run on"
+    other = "" if platform == "egl" else "; or unset PYOPENGL_PLATFORM to render with EGL, posediff's default"
+    return OffscreenGLError(
+        f"cannot render offscreen with PYOPENGL_PLATFORM={platform} ({type(e).__name__}: {detail}): {fix}{other}"
+    )
+
+
+def import_pyrender() -> Any:
+    """``pyrender``, imported after :func:`prepare_gl`; a platform whose OpenGL library cannot be
+    loaded (``PYOPENGL_PLATFORM=osmesa`` without libOSMesa, EGL without Mesa) is an
+    :class:`OffscreenGLError` naming it, not PyOpenGL's 60-line traceback."""
+    prepare_gl()
+    try:
+        import pyrender
+    except (ImportError, AttributeError, OSError, RuntimeError) as e:
+        raise _gl_error(e) from e
+    return pyrender
+
+
+def offscreen_renderer(width: int, height: int) -> Any:
+    """A ``pyrender.OffscreenRenderer(width, height)``; a context that cannot be made is an
+    :class:`OffscreenGLError`."""
+    pyrender = import_pyrender()
+    try:
+        return pyrender.OffscreenRenderer(width, height)
+    except (ImportError, AttributeError, OSError, RuntimeError, ValueError) as e:
+        raise _gl_error(e) from e
+
 
 def prepare_gl() -> None:
     """Make the process safe for an offscreen GL context (idempotent; call it before importing

@@ -157,22 +157,26 @@ def estimates_of_predictions(
 def check_estimates(
     estimates: Sequence[BopEstimate], datamodule: BopDataModule, where: Sequence[str] | None = None
 ) -> None:
-    """Refuse, with one line naming the row, an estimate of an object the dataset's models do not
-    have or of an image that holds no target. ``where``: how to name each row (default: the row's own
-    ``where``, ``path:line`` when read by :func:`~posediff.metrics.bop19.read_bop19_csv`, else
-    ``row N``). An estimate of an object that is no target of its image is not refused: the
+    """Refuse, with one line naming the row (:class:`~posediff.metrics.bop19.BopResultsError`), an
+    estimate whose ``R`` is no rotation (orthonormal with det +1 within
+    :data:`~posediff.metrics.bop19.ROTATION_TOLERANCE`: a scaled R, a reflection or zeros would
+    otherwise be scored — a scaled R keeps its rotation angle), of an object the dataset's models do
+    not have or of an image that holds no target. ``where``: how to name each row (default: the
+    row's own ``where``, ``path:line`` when read by :func:`~posediff.metrics.bop19.read_bop19_csv`,
+    else ``row N``). An estimate of an object that is no target of its image is not refused: the
     toolkit ignores it, and so does :func:`score_estimates` (``estimates_ignored``)."""
     images = {i.key[:2] for i in datamodule.targets}
     known = set(datamodule.models.obj_ids)
     for k, e in enumerate(estimates):
         name = where[k] if where is not None else (e.where or f"row {k + 1}")
+        bop19.check_rotation(e.R, name)
         if e.obj_id not in known:
             ids = ", ".join(str(o) for o in sorted(known))
-            raise ValueError(
+            raise bop19.BopResultsError(
                 f"{name}: obj_id {e.obj_id} is not in {datamodule.models.info_path} (objects {ids})"
             )
         if (e.scene_id, e.im_id) not in images:
-            raise ValueError(
+            raise bop19.BopResultsError(
                 f"{name}: scene {e.scene_id} image {e.im_id} holds no target of "
                 f"{datamodule.root / (datamodule.targets_file or datamodule.test_split)}"
             )

@@ -493,6 +493,51 @@ def pose_recalls(
 
 CSV_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 TIME_TOLERANCE_S = 1e-3  # the toolkit's tolerance between the times of one image's estimates
+#: How far an estimate's ``R`` may be from a rotation: ``max |RᵀR − I| ≤ ROTATION_TOLERANCE``
+#: (elementwise) and ``|det R − 1| ≤ ROTATION_TOLERANCE``. Results are written with 6-9 significant
+#: digits (float32 printed: RᵀR − I ~ 1e-7); even 4 decimals (each entry off by ≤ 5e-5) stay below
+#: ~3e-4. Refused: a scaled R (R·s with |s − 1| > ~3.3e-4, as det R = s³; e.g. R×2), a reflection
+#: (det −1), zeros, a garbled matrix. The BOP toolkit (``inout.load_bop_results``) checks nothing
+#: here: it feeds any nine numbers to the errors, and a scaled R keeps its rotation angle.
+ROTATION_TOLERANCE = 1e-3
+
+
+class BopResultsError(ValueError):
+    """A BOP19 results file or estimate that cannot be scored (one line naming the file and line,
+    or the row)."""
+
+
+def rotation_problem(R: Any, tol: float = ROTATION_TOLERANCE) -> str | None:
+    """Why ``R`` (9 numbers, row-major) is not a rotation within ``tol`` (:data:`ROTATION_TOLERANCE`),
+    or ``None`` when it is one."""
+    M = np.asarray(R, dtype=np.float64).reshape(3, 3)
+    if not np.isfinite(M).all():
+        return "R has non-finite numbers"
+    gram = M.T @ M
+    err = float(np.abs(gram - np.eye(3)).max())
+    det = float(np.linalg.det(M))
+    if err > tol:
+        if not M.any():
+            return "R is all zeros, not a rotation"
+        scale = math.sqrt(max(float(np.trace(gram)) / 3.0, 0.0))
+        scaled = scale > 0 and float(np.abs(gram / scale**2 - np.eye(3)).max()) <= tol
+        what = f"R looks like a rotation scaled by {scale:.6g}" if scaled else "R is not orthonormal"
+        return f"{what} (max |RᵀR − I| = {err:.3g} > {tol:g}{', det = ' + format(det, '.3g') if det < 0 else ''})"
+    if abs(det - 1.0) > tol:
+        kind = "a reflection" if det < 0 else "not a rotation"
+        return f"R has det {det:.6g} ({kind}; a rotation has det +1 within {tol:g})"
+    return None
+
+
+def check_rotation(R: Any, where: str, tol: float = ROTATION_TOLERANCE) -> None:
+    """Refuse an ``R`` that is no rotation (:func:`rotation_problem`) with one line
+    (:class:`BopResultsError`) starting with ``where``."""
+    problem = rotation_problem(R, tol)
+    if problem is not None:
+        raise BopResultsError(
+            f"{where}: {problem}; R must be a rotation (orthonormal, det +1, within {tol:g}) model → camera, "
+            "9 numbers row-major"
+        )
 
 
 @dataclass(eq=False)
@@ -551,7 +596,7 @@ def _check_times(times: dict[tuple[int, int], float], e: BopEstimate, where: str
     key = (e.scene_id, e.im_id)
     first = times.setdefault(key, e.time)
     if abs(first - e.time) > TIME_TOLERANCE_S:
-        raise ValueError(
+        raise BopResultsError(
             f"{where}: scene {e.scene_id} image {e.im_id} has time {e.time} but also {first}; BOP19 "
             "needs one time per image"
         )
@@ -573,13 +618,33 @@ def write_bop19_csv(path: str | Path, rows: Iterable[BopEstimate | Mapping[str, 
     return atomic_write_text(path, "\n".join(lines) + "\n")
 
 
+def _utf8_text(path: str | Path) -> str:
+    """The file's text: UTF-8, a leading byte-order mark (Excel's "CSV UTF-8") dropped; other bytes
+    refused with one line naming the file, line and column (:class:`BopResultsError`)."""
+    import codecs
+
+    data = Path(path).read_bytes()
+    skip = len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0
+    try:
+        return data[skip:].decode("utf-8")
+    except UnicodeDecodeError as e:
+        pos = skip + e.start
+        line = data.count(b"\n", 0, pos) + 1
+        column = pos - (data.rfind(b"\n", 0, pos) + 1) + 1
+        raise BopResultsError(
+            f"{path}:{line}: not UTF-8 text (byte 0x{data[pos]:02x} at column {column}); a BOP19 results "
+            "CSV is plain ASCII / UTF-8: save it as UTF-8"
+        ) from None
+
+
 def read_bop19_csv(path: str | Path) -> list[BopEstimate]:
-    """Parse a BOP19 results file (the header line is optional, as for the toolkit; blank lines are
-    skipped). Raises a one-line ValueError naming the file and line on a malformed row or when one
-    image's estimates carry different times."""
+    """Parse a BOP19 results file (UTF-8, a byte-order mark allowed; the header line is optional, as
+    for the toolkit; blank lines are skipped). Raises a one-line :class:`BopResultsError` naming the
+    file and line on a non-UTF-8 file, a malformed row, an ``R`` that is no rotation
+    (:data:`ROTATION_TOLERANCE`) or when one image's estimates carry different times."""
     out: list[BopEstimate] = []
     times: dict[tuple[int, int], float] = {}
-    text = Path(path).read_text(encoding="utf-8")
+    text = _utf8_text(path)
     for n, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
         if not line:
@@ -587,11 +652,11 @@ def read_bop19_csv(path: str | Path) -> list[BopEstimate]:
         where = f"{path}:{n}"
         if not out and line.startswith("scene_id"):
             if line.replace(" ", "") != CSV_HEADER:
-                raise ValueError(f"{where}: header {line!r}, expected {CSV_HEADER!r}")
+                raise BopResultsError(f"{where}: header {line!r}, expected {CSV_HEADER!r}")
             continue
         fields = line.split(",")
         if len(fields) != 7:
-            raise ValueError(f"{where}: {len(fields)} comma-separated fields, expected 7 ({CSV_HEADER})")
+            raise BopResultsError(f"{where}: {len(fields)} comma-separated fields, expected 7 ({CSV_HEADER})")
         try:
             R = [float(x) for x in fields[4].split()]
             t = [float(x) for x in fields[5].split()]
@@ -609,7 +674,8 @@ def read_bop19_csv(path: str | Path) -> list[BopEstimate]:
             )
         except ValueError as exc:
             msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            raise ValueError(f"{where}: {msg}") from None
+            raise BopResultsError(f"{where}: {msg}") from None
+        check_rotation(e.R, where)
         _check_times(times, e, where)
         out.append(e)
     return out
@@ -618,18 +684,22 @@ def read_bop19_csv(path: str | Path) -> list[BopEstimate]:
 __all__ = [
     "BOP19",
     "CSV_HEADER",
+    "ROTATION_TOLERANCE",
     "VSD_DELTAS",
     "BopEstimate",
+    "BopResultsError",
     "Bop19Protocol",
     "ImageObjectErrors",
     "Matches",
     "ar_from_paired_errors",
     "average_recall",
+    "check_rotation",
     "match",
     "mspd_correct",
     "mssd_correct",
     "pose_recalls",
     "read_bop19_csv",
+    "rotation_problem",
     "symmetric_rotation_errors_deg",
     "vsd_correct",
     "write_bop19_csv",

@@ -13,11 +13,12 @@ from .blocks import ACTIVATIONS, ConditionedBlock, FourierBlock, LecunLinear, Sc
 from .denoiser import MLPDenoiser
 from .embedding import SinusoidalEmbedding
 from .encoder import ResNetEncoder
-from .pose_encoder import Encoding, PoseEncoder, ray_rotation, rotation_from_6d
+from .pose_encoder import CropBoxError, Encoding, PoseEncoder, ray_rotation, rotation_from_6d
 
 __all__ = [
     "ACTIVATIONS",
     "ConditionedBlock",
+    "CropBoxError",
     "Encoding",
     "FourierBlock",
     "LecunLinear",

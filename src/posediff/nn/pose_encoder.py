@@ -45,7 +45,12 @@ ROTATION_HEADS = ("6d", "invariant")
 #: the children of a torchvision ResNet that form the trunk (all but avgpool and fc), in order
 _TORCHVISION_TRUNK = ("conv1", "bn1", "relu", "maxpool", "layer1", "layer2", "layer3", "layer4")
 
-__all__ = ["Encoding", "PoseEncoder", "ray_rotation", "rotation_from_6d"]
+__all__ = ["CropBoxError", "Encoding", "PoseEncoder", "ray_rotation", "rotation_from_6d"]
+
+
+class CropBoxError(ValueError):
+    """The crop around the located object cannot be placed: its position is NaN or ±inf (a NaN
+    image or NaN locator weights). Raised before ``torchvision.ops.roi_align``, which would crash."""
 
 
 def rotation_from_6d(x: Tensor) -> Tensor:
@@ -306,6 +311,11 @@ class PoseEncoder(nn.Module):
         from torchvision.ops import roi_align
 
         boxes, t_cam = self.project(t)
+        if not bool(torch.isfinite(boxes).all()):  # roi_align crashes the process (SIGSEGV) on NaN boxes
+            raise CropBoxError(
+                "the located object position is not finite (NaN or ±inf): the image or the locator's "
+                "weights hold NaN/inf; check the input image and the checkpoint"
+            )
         rois = torch.cat([torch.arange(len(t), device=t.device, dtype=t.dtype)[:, None], boxes], dim=1)
         out = roi_align(image, rois.to(image.dtype), (self.crop_size, self.crop_size), 1.0, 2, True)
         return out, ray_rotation(t_cam)

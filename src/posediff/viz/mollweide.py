@@ -186,6 +186,10 @@ def save_figure(fig: Figure | Axes, path: str | os.PathLike[str], **savefig_kwar
     try:
         figure.savefig(tmp, **savefig_kwargs)
         os.replace(tmp, path)
+    except OSError as e:
+        from .._io import named_os_error
+
+        raise named_os_error(e, path) from e
     finally:
         if tmp.exists():
             tmp.unlink()

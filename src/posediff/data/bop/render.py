@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from ..offscreen import CV_TO_GL, prepare_gl, release
+from ..offscreen import CV_TO_GL, import_pyrender, offscreen_renderer, release
 
 #: Default tolerance (mm) between an instance's own depth and the scene depth for a pixel of the
 #: instance to count as visible (rendered depths of the same surface agree to ~1e-3 mm).
@@ -85,8 +85,7 @@ class _Gl:
     of mesh nodes (each its own ``pyrender.Mesh`` so that visibility is per node)."""
 
     def __init__(self, owner: BopRenderer) -> None:
-        prepare_gl()
-        import pyrender
+        pyrender = import_pyrender()
 
         self.pyrender = pyrender
         self.owner = owner
@@ -105,7 +104,7 @@ class _Gl:
         self.fill = pyrender.DirectionalLight(intensity=owner.fill_light)
         self.scene.add(self.fill, pose=fill_pose)
         self.slots: dict[int, list[Any]] = {}
-        self.renderer = pyrender.OffscreenRenderer(owner.width, owner.height)
+        self.renderer = offscreen_renderer(owner.width, owner.height)
         if not owner.antialias:
             self._single_sample()
 

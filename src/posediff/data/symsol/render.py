@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from ...symmetry import SHAPES
-from ..offscreen import CV_TO_GL, prepare_gl, release
+from ..offscreen import CV_TO_GL, import_pyrender, offscreen_renderer, prepare_gl, release
 from .shapes import SHAPE_IDS, make_mesh, shape_name
 
 #: Half-width (units) of the view frustum at the scene centre, and the field of view: the authors'.
@@ -113,8 +113,7 @@ class SymsolRenderer:
         return state
 
     def _setup(self) -> Any:
-        prepare_gl()
-        import pyrender
+        pyrender = import_pyrender()
 
         W = self.image_size
         f, c = self.K[0, 0], self.K[0, 2]
@@ -134,7 +133,7 @@ class SymsolRenderer:
             scene.add(pyrender.DirectionalLight(intensity=self.key_light), pose=np.eye(4))
             scene.add(pyrender.DirectionalLight(intensity=self.fill_light), pose=fill_pose)
             scenes[shape] = (scene, node)
-        renderer = pyrender.OffscreenRenderer(W, W)
+        renderer = offscreen_renderer(W, W)
         return renderer, scenes
 
     def __call__(self, shape: str | int, R: np.ndarray, t: np.ndarray) -> Rendered:
