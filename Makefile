@@ -66,6 +66,9 @@ pretrain: ## posediff pretrain: the encoder by symmetry-aware regression on the 
 bench-render: ## SYMSOL-T rendering speed vs a training step (writes benchmarks/results/render.json)
 	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/render.py
 
+bench-train: ## one training step split by phase, and each speed lever (writes benchmarks/results/train_step.json)
+	$(PY) benchmarks/train_step.py
+
 bench-sampler: ## time per denoising step, network vs group math (writes benchmarks/results/sampler.json)
 	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/sampler.py
 
@@ -84,4 +87,4 @@ clean: ## remove caches and outputs (keeps .venv)
 	rm -rf .pytest_cache outputs multirun build dist
 	find . -name __pycache__ -type d -prune -exec rm -rf {} +
 
-.PHONY: help install system-deps test test-all demo walkthrough figures bench bench-tuned bench-render learning-speed pretrain notebooks gpu-check lint clean
+.PHONY: help install system-deps test test-all demo walkthrough figures bench bench-tuned bench-render bench-train learning-speed pretrain notebooks gpu-check lint clean

@@ -25,12 +25,14 @@ symmetry labels) or with the symmetry-aware regression loss as an auxiliary term
 A locate-then-crop encoder's locator is trained by regression on the translation (``locate_weight``).
 """
 
+import os
 from collections.abc import Callable
 from typing import Any
 
 import lightning as L
 import torch
 from torch import Tensor, nn
+from torch.profiler import record_function
 
 from .diffusion import Diffusion, Sampler
 from .lie._pose import make_pose
@@ -39,6 +41,15 @@ from .symmetry import SHAPES, set_chordal_sq, symsol_chordal_sq
 
 #: the key of the run configuration in the module's hyperparameters (and in its checkpoints)
 CONFIG_HPARAM = "posediff_config"
+
+
+def compile_problem() -> str | None:
+    """Why ``torch.compile`` (inductor) cannot run here, or ``None``: on the CPU it needs a C++ compiler."""
+    import shutil
+
+    if not any(shutil.which(c) for c in (os.environ.get("CXX", "g++"), "g++", "clang++", "c++")):
+        return "inductor needs a C++ compiler on the CPU and none is on PATH (apt install g++)"
+    return None
 
 
 class PoseDiffusionModule(L.LightningModule):
@@ -71,6 +82,9 @@ class PoseDiffusionModule(L.LightningModule):
     """
 
     POSE_INPUTS = ("tangent", "matrix")
+    #: Adam's update: ``default`` (PyTorch's choice: a for-loop over tensors on the CPU), ``foreach``
+    #: (multi-tensor), ``fused`` (one fused kernel; CPU and CUDA) — the same arithmetic
+    OPTIMIZER_IMPLS = ("default", "foreach", "fused")
 
     def __init__(
         self,
@@ -91,8 +105,18 @@ class PoseDiffusionModule(L.LightningModule):
         locate_weight: float = 1.0,
         grad_probe_every: int = 0,
         denoiser_lr: float | None = None,
+        optimizer_impl: str = "default",
+        channels_last: bool = False,
+        compile: bool = False,
     ) -> None:
         super().__init__()
+        if optimizer_impl not in self.OPTIMIZER_IMPLS:
+            raise ValueError(
+                f"unknown optimizer_impl {optimizer_impl!r}; choose one of: {', '.join(self.OPTIMIZER_IMPLS)}"
+            )
+        self.optimizer_impl = optimizer_impl
+        self.channels_last = bool(channels_last)
+        self.compile_networks = bool(compile)
         if pose_input not in self.POSE_INPUTS:
             raise ValueError(
                 f"unknown pose_input {pose_input!r}; choose one of: {', '.join(self.POSE_INPUTS)}"
@@ -217,13 +241,37 @@ class PoseDiffusionModule(L.LightningModule):
         return self.forward
 
     # ------------------------------------------------------------------ training
+    def on_fit_start(self) -> None:
+        """The speed levers that change how, not what, the networks compute (benchmarks/train_step.py):
+        ``channels_last`` puts the encoder's conv weights (and so its activations) in channels-last order;
+        ``compile`` compiles the encoder's and the denoiser's forward (and so backward) with
+        ``torch.compile`` in place (state-dict keys unchanged) — where the backend cannot run (no C++
+        compiler for inductor on the CPU) a warning says so and training stays eager."""
+        if self.channels_last and not isinstance(self.encoder, nn.Identity):
+            self.encoder.to(memory_format=torch.channels_last)
+        if self.compile_networks:
+            problem = compile_problem()
+            if problem is not None:
+                import warnings
+
+                warnings.warn(f"module.compile=true ignored: {problem}; training eagerly", stacklevel=1)
+                return
+            if not isinstance(self.encoder, nn.Identity):
+                self.encoder.compile()
+            self.denoiser.compile()
+
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
-        enc = self.encode_full(batch[self.cond_key], pose=batch["pose"])
-        noisy = self.diffusion.perturb(batch["pose"], num_noisy=self.num_noisy)
-        out = self(noisy.x_noisy, noisy.sigma, self.pack(enc))
-        diffusion_loss = self.diffusion.loss(out, noisy)
-        bs = batch["pose"].shape[0]
-        loss = diffusion_loss + self.side_losses(batch, enc, "train")
+        # the named ranges split a step in torch.profiler (benchmarks/train_step.py); ~µs when off
+        with record_function("posediff.encoder"):
+            enc = self.encode_full(batch[self.cond_key], pose=batch["pose"])
+        with record_function("posediff.perturb"):
+            noisy = self.diffusion.perturb(batch["pose"], num_noisy=self.num_noisy)
+        with record_function("posediff.denoiser"):
+            out = self(noisy.x_noisy, noisy.sigma, self.pack(enc))
+        with record_function("posediff.losses"):
+            diffusion_loss = self.diffusion.loss(out, noisy)
+            bs = batch["pose"].shape[0]
+            loss = diffusion_loss + self.side_losses(batch, enc, "train")
         if not torch.isfinite(loss):
             raise FloatingPointError(f"non-finite training loss {loss.item()} at step {self.global_step}")
         if self.grad_probe_every > 0 and self.global_step % self.grad_probe_every == 0:
@@ -252,27 +300,31 @@ class PoseDiffusionModule(L.LightningModule):
         if probe:  # the pose head as a linear probe: trained on the detached feature, never the encoder
             R, t, emb, logits = self.encoder.head_pose(enc.feature.detach(), enc.ray, enc.crop_translation)
             enc = Encoding(enc.feature, R, t, enc.located, enc.crop_translation, enc.ray, emb, logits)
+        rotation_loss = None  # min_S ‖R̂ − R·S‖²_F, computed once for the log and (6-D head) the loss
         if enc.rotation is not None:
-            deg = torch.rad2deg(_chordal_to_angle(symmetric_rotation_loss(batch, enc.rotation.detach())))
+            trains = (self.aux_weight > 0 or probe) and enc.embedding is None
+            rotation_loss = symmetric_rotation_loss(batch, enc.rotation if trains else enc.rotation.detach())
+            deg = torch.rad2deg(_chordal_to_angle(rotation_loss.detach()))
             self.log(f"{stage}/anchor_deg", deg.mean(), prog_bar=stage == "val", batch_size=bs)
             if stage == "val":
                 for k in batch["shape"].unique().tolist() if "shape" in batch else []:
                     sel = batch["shape"] == k
                     self.log(f"val/anchor_deg_{SHAPES[int(k)]}", deg[sel].mean(), batch_size=int(sel.sum()))
         if self.aux_weight > 0 or probe:
-            aux = self.anchor_loss(batch, enc).mean()
+            aux = self.anchor_loss(batch, enc, rotation_loss=rotation_loss).mean()
             self.log(f"{stage}/{'probe' if probe else 'aux'}_loss", aux, batch_size=bs)
             total = total + (1.0 if probe else self.aux_weight) * aux
         return total
 
-    def anchor_loss(self, batch: dict[str, Tensor], enc: Encoding) -> Tensor:
+    def anchor_loss(self, batch: dict[str, Tensor], enc: Encoding, rotation_loss: Tensor | None = None) -> Tensor:
         """The symmetry-aware loss of the encoder's pose per input ``(B,)``: the invariant head's
-        embedding loss, or ``min_S ‖R̂ − R·S‖²_F``; plus the translation's squared error."""
+        embedding loss, or ``min_S ‖R̂ − R·S‖²_F`` (``rotation_loss`` when the caller has it already);
+        plus the translation's squared error."""
         pose = batch["pose"]
         if enc.embedding is not None:
             loss = self.encoder.embedding_loss(enc, batch["shape"], pose[..., :3, :3])
         else:
-            loss = symmetric_rotation_loss(batch, enc.rotation)
+            loss = rotation_loss if rotation_loss is not None else symmetric_rotation_loss(batch, enc.rotation)
         if enc.translation is not None and pose.shape[-1] == 4:
             loss = loss + self.translation_weight * (enc.translation - pose[:, :3, 3]).square().sum(-1)
         return loss
@@ -377,10 +429,13 @@ class PoseDiffusionModule(L.LightningModule):
         if den_params:
             params.append({"params": den_params, "lr": self.denoiser_lr or self.lr})
         params = [g for g in params if g["params"]]
+        impl: dict[str, bool] = {"foreach": {"foreach": True}, "fused": {"fused": True}}.get(self.optimizer_impl, {})
         if self.weight_decay > 0:
-            opt: torch.optim.Optimizer = torch.optim.AdamW(params, lr=self.lr, weight_decay=self.weight_decay)
+            opt: torch.optim.Optimizer = torch.optim.AdamW(
+                params, lr=self.lr, weight_decay=self.weight_decay, **impl
+            )
         else:
-            opt = torch.optim.Adam(params, lr=self.lr)
+            opt = torch.optim.Adam(params, lr=self.lr, **impl)
         total = max(int(getattr(self.trainer, "max_steps", -1) or -1), 1)
         start = int(self.decay_start * total)
         ratio = self.lr_final / self.lr
