@@ -316,7 +316,9 @@ class PoseDiffusionModule(L.LightningModule):
             total = total + (1.0 if probe else self.aux_weight) * aux
         return total
 
-    def anchor_loss(self, batch: dict[str, Tensor], enc: Encoding, rotation_loss: Tensor | None = None) -> Tensor:
+    def anchor_loss(
+        self, batch: dict[str, Tensor], enc: Encoding, rotation_loss: Tensor | None = None
+    ) -> Tensor:
         """The symmetry-aware loss of the encoder's pose per input ``(B,)``: the invariant head's
         embedding loss, or ``min_S ‖R̂ − R·S‖²_F`` (``rotation_loss`` when the caller has it already);
         plus the translation's squared error."""
@@ -324,7 +326,9 @@ class PoseDiffusionModule(L.LightningModule):
         if enc.embedding is not None:
             loss = self.encoder.embedding_loss(enc, batch["shape"], pose[..., :3, :3])
         else:
-            loss = rotation_loss if rotation_loss is not None else symmetric_rotation_loss(batch, enc.rotation)
+            loss = (
+                rotation_loss if rotation_loss is not None else symmetric_rotation_loss(batch, enc.rotation)
+            )
         if enc.translation is not None and pose.shape[-1] == 4:
             loss = loss + self.translation_weight * (enc.translation - pose[:, :3, 3]).square().sum(-1)
         return loss
@@ -429,7 +433,9 @@ class PoseDiffusionModule(L.LightningModule):
         if den_params:
             params.append({"params": den_params, "lr": self.denoiser_lr or self.lr})
         params = [g for g in params if g["params"]]
-        impl: dict[str, bool] = {"foreach": {"foreach": True}, "fused": {"fused": True}}.get(self.optimizer_impl, {})
+        impl: dict[str, bool] = {"foreach": {"foreach": True}, "fused": {"fused": True}}.get(
+            self.optimizer_impl, {}
+        )
         if self.weight_decay > 0:
             opt: torch.optim.Optimizer = torch.optim.AdamW(
                 params, lr=self.lr, weight_decay=self.weight_decay, **impl
