@@ -75,6 +75,13 @@ def test_an_unknown_optimizer_impl_is_one_line() -> None:
         instantiate(cfg.module)
 
 
+@pytest.mark.parametrize("key", ["channels_last", "compile"])
+def test_a_lever_that_is_not_a_bool_is_one_line(key: str) -> None:
+    cfg = _compose([*TOY, f"module.{key}=abc"])
+    with pytest.raises(Exception, match=f"module.{key} must be true or false, got 'abc'"):
+        instantiate(cfg.module)
+
+
 def test_channels_last_encoder_computes_the_same() -> None:
     """The locate-then-crop ResNet in channels-last order: the same encoding and the same gradients."""
     from posediff.nn import PoseEncoder

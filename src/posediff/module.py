@@ -114,9 +114,12 @@ class PoseDiffusionModule(L.LightningModule):
             raise ValueError(
                 f"unknown optimizer_impl {optimizer_impl!r}; choose one of: {', '.join(self.OPTIMIZER_IMPLS)}"
             )
+        for key, flag in (("channels_last", channels_last), ("compile", compile)):
+            if not isinstance(flag, bool):  # bool("abc") is True: a typo would switch the lever on
+                raise ValueError(f"module.{key} must be true or false, got {flag!r}")
         self.optimizer_impl = optimizer_impl
-        self.channels_last = bool(channels_last)
-        self.compile_networks = bool(compile)
+        self.channels_last = channels_last
+        self.compile_networks = compile
         if pose_input not in self.POSE_INPUTS:
             raise ValueError(
                 f"unknown pose_input {pose_input!r}; choose one of: {', '.join(self.POSE_INPUTS)}"
