@@ -44,8 +44,11 @@ class LieGroup(Registered, family=True):
 
     Args:
         compiled: run the kernels through ``torch.compile`` (fused, much faster on large batches;
-            the first call of each operation compiles for a few seconds). Applies when no input
-            requires grad; under autograd the eager kernels run. Off by default.
+            the first call of each operation compiles for a few seconds). Under autograd the
+            forward is the compiled kernel and the backward a compiled vector-Jacobian product of
+            the same kernel (``torch.func.vjp``, compiled once per operation); a second derivative
+            (``create_graph=True``) re-runs the eager kernel, so higher orders stay exact. Off by
+            default.
     """
 
     family_label: ClassVar[str] = "Lie group"
@@ -277,11 +280,11 @@ class LieGroup(Registered, family=True):
     # ------------------------------------------------------------------ plumbing
     def _run(self, op: str, *args: Tensor) -> Tensor:
         fn: Callable[..., Tensor] = getattr(type(self), "_" + op)
-        # The fused path is for inference-sized work; under autograd the eager kernels run (they
-        # are differentiable everywhere, and compiled backward graphs cannot be retained).
-        if self.compiled and not (torch.is_grad_enabled() and any(a.requires_grad for a in args)):
-            fn = _compiled(type(self), op)  # type: ignore[arg-type]  # classes hash by identity
-        return fn(*args)
+        if not self.compiled:
+            return fn(*args)
+        if torch.is_grad_enabled() and any(a.requires_grad for a in args):
+            return _CompiledKernel.apply(type(self), op, *args)  # type: ignore[no-any-return]
+        return _compiled(type(self), op)(*args)  # type: ignore[arg-type]  # classes hash by identity
 
     def _tangent(self, xi: Tensor, op: str) -> Tensor:
         if not isinstance(xi, Tensor) or xi.ndim < 1 or xi.shape[-1] != self.dim:
@@ -310,8 +313,61 @@ def _compiled(cls: type[LieGroup], op: str) -> Callable[..., Tensor]:
     Inductor's CPU tiling heuristics leave kernels that read ``(*b, 3, 3)`` entries with stride 9
     unvectorised (measured: SO3 log 30 ms → 4–8 ms at N = 10⁶ with them off), hence the option.
     """
-    options: dict[str, str | int | bool | Callable[..., Any]] = {"cpp.enable_tiling_heuristics": False}
-    return torch.compile(getattr(cls, "_" + op), dynamic=None, fullgraph=True, options=options)  # type: ignore[no-any-return]
+    kernel = getattr(cls, "_" + op)
+
+    def call(*args: Tensor) -> Tensor:
+        return kernel(*args)  # type: ignore[no-any-return]
+
+    return _compile(call, f"{cls.name}_{op}")
+
+
+_COMPILE_OPTIONS: dict[str, str | int | bool] = {"cpp.enable_tiling_heuristics": False}
+
+
+def _compile(fn: Callable[..., Any], label: str) -> Callable[..., Any]:
+    """``torch.compile`` with a code object of its own: Dynamo keeps its graphs per code object and
+    gives each at most ``recompile_limit`` (8) variants, which kernels shared by several groups (the
+    base class's ``_rplus``) or one vjp wrapper for every kernel would exhaust."""
+    fn.__code__ = fn.__code__.replace(co_name=label, co_qualname=label)
+    return torch.compile(fn, dynamic=None, fullgraph=True, options=dict(_COMPILE_OPTIONS))
+
+
+@functools.cache
+def _compiled_vjp(cls: type[LieGroup], op: str) -> Callable[..., tuple[Tensor, ...]]:
+    """The vector-Jacobian product of a kernel, ``(*args, grad) → grads``, compiled like the kernel."""
+    kernel = getattr(cls, "_" + op)
+
+    def vjp(*args_and_grad: Tensor) -> tuple[Tensor, ...]:
+        *args, grad = args_and_grad
+        return torch.func.vjp(kernel, *args)[1](grad)  # type: ignore[no-any-return]
+
+    return _compile(vjp, f"{cls.name}_{op}_vjp")
+
+
+class _CompiledKernel(torch.autograd.Function):
+    """A compiled kernel with a compiled backward (``LieGroup(compiled=True)`` under autograd).
+
+    ``torch.compile`` alone would also differentiate, but its backward graphs refuse a second
+    derivative; here ``create_graph=True`` takes the eager kernel's autograd graph instead.
+    """
+
+    @staticmethod
+    def forward(ctx: Any, cls: type[LieGroup], op: str, *args: Tensor) -> Tensor:
+        ctx.cls, ctx.op = cls, op
+        ctx.save_for_backward(*args)
+        return _compiled(cls, op)(*args)
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
+        args = ctx.saved_tensors
+        wanted = ctx.needs_input_grad[2:]
+        if torch.is_grad_enabled():  # create_graph=True: a graph for the next derivative
+            out = getattr(ctx.cls, "_" + ctx.op)(*args)
+            inputs = [a for a, w in zip(args, wanted, strict=True) if w]
+            found = iter(torch.autograd.grad(out, inputs, grad, create_graph=True, allow_unused=True))
+            return (None, None, *(next(found) if w else None for w in wanted))
+        grads = _compiled_vjp(ctx.cls, ctx.op)(*args, grad.contiguous())
+        return (None, None, *(g if w else None for g, w in zip(grads, wanted, strict=True)))
 
 
 def _as_shape(batch_shape: BatchShape) -> tuple[int, ...]:
