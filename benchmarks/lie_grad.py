@@ -43,7 +43,7 @@ def main() -> int:
             fns = {}
             for label, group in (("eager", group_cls()), ("compiled", group_cls(compiled=True))):
 
-                def step(group=group, op=op) -> None:  # type: ignore[no-untyped-def]
+                def step(group=group, op=op, x0=x0, g0=g0) -> None:  # type: ignore[no-untyped-def]
                     x = (x0 if op == "exp" else g0).clone().requires_grad_(True)
                     y = group.compose(x, g0.flip(0)) if op == "compose" else getattr(group, op)(x)
                     y.backward(torch.ones_like(y))
