@@ -355,7 +355,7 @@ class _CompiledKernel(torch.autograd.Function):
     def forward(ctx: Any, cls: type[LieGroup], op: str, *args: Tensor) -> Tensor:
         ctx.cls, ctx.op = cls, op
         ctx.save_for_backward(*args)
-        return _compiled(cls, op)(*args)
+        return _compiled(cls, op)(*args)  # type: ignore[arg-type]  # classes hash by identity
 
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
