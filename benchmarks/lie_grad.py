@@ -10,17 +10,16 @@ product backward (``posediff.lie.base._CompiledKernel``). Each round times ``op(
 
 import argparse
 import datetime as dt
-import json
 import os
 import platform
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import torch
 
+from posediff._io import atomic_write_json
 from posediff.lie import SE3, SO3
 
 RESULTS = Path(__file__).resolve().parent / "results" / "lie_grad.json"
@@ -88,10 +87,7 @@ def main() -> int:
         "python": platform.python_version(),
         "cpu_count": os.cpu_count(),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=args.out.parent, delete=False, suffix=".tmp") as f:
-        json.dump({"meta": meta, "results": rows}, f, indent=2)
-    os.replace(f.name, args.out)
+    atomic_write_json(args.out, {"meta": meta, "results": rows})
     print(f"wrote {args.out}")
     return 0
 

@@ -21,12 +21,10 @@ PyTorch's CPU tuning guide recommends) and writes ``lie_ops_tuned_malloc.json``.
 
 import argparse
 import datetime as dt
-import json
 import os
 import platform
 import statistics
 import sys
-import tempfile
 import time
 import warnings
 from collections.abc import Callable
@@ -35,6 +33,7 @@ from typing import Any
 
 import torch
 
+from posediff._io import atomic_write_json
 from posediff.lie import R3SO3, SE3, SO3
 
 warnings.filterwarnings("ignore")
@@ -241,10 +240,7 @@ def main() -> int:
         "cpu_count": os.cpu_count(),
         "peers": {k: getattr(v, "__version__", "?") for k, v in peers.items()},
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=args.out.parent, delete=False, suffix=".tmp") as f:
-        json.dump({"meta": meta, "results": rows, "summary": summary}, f, indent=2)
-    os.replace(f.name, args.out)
+    atomic_write_json(args.out, {"meta": meta, "results": rows, "summary": summary})
     print(f"\nwrote {args.out}")
     return 0
 

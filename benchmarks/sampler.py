@@ -37,12 +37,10 @@ the goal on a quiet machine.
 
 import argparse
 import datetime as dt
-import json
 import os
 import platform
 import statistics
 import sys
-import tempfile
 import time
 import warnings
 from collections.abc import Callable
@@ -55,6 +53,7 @@ from rich.console import Console
 from rich.table import Table
 from torch import Tensor, nn
 
+from posediff._io import atomic_write_json
 from posediff.diffusion import ConcentratedGaussian, Diffusion, LinearSchedule, Sampler
 from posediff.lie import SE3, SO3
 from posediff.module import PoseDiffusionModule
@@ -256,10 +255,7 @@ def images(args: argparse.Namespace) -> int:
             "cpu": _cpu_model(), "cpu_count": os.cpu_count(), "load_average": os.getloadavg(),
             "elapsed_s": round(time.perf_counter() - t_start, 1)}  # fmt: skip
     out = args.out if args.out != RESULTS else IMAGES_RESULTS
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=out.parent, delete=False, suffix=".tmp") as f:
-        json.dump({"meta": meta, "results": rows}, f, indent=2)
-    os.replace(f.name, out)
+    atomic_write_json(out, {"meta": meta, "results": rows})
     print(f"wrote {out}")
     return 0
 
@@ -351,10 +347,7 @@ def main() -> int:
         "cpu_count": os.cpu_count(),
         "load_average": os.getloadavg(),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=args.out.parent, delete=False, suffix=".tmp") as f:
-        json.dump({"meta": meta, "results": rows}, f, indent=2)
-    os.replace(f.name, args.out)
+    atomic_write_json(args.out, {"meta": meta, "results": rows})
     console.print(f"wrote {args.out} ({elapsed:.0f} s)")
     return 0
 
