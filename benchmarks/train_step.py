@@ -78,6 +78,14 @@ LEVERS: dict[str, tuple[str, list[str]]] = {
 }
 
 
+#: the code paths ``--curve`` compares: name → overrides on top of the experiment's
+CURVE_PATHS: dict[str, list[str]] = {
+    "today": TODAY,
+    "defaults": [],
+    "defaults_bf16": LEVERS["bf16"][1],
+}
+
+
 # --------------------------------------------------------------------------------------------------
 # building the run (the composition root's configs, instantiated as posediff fit does)
 # --------------------------------------------------------------------------------------------------
@@ -258,11 +266,9 @@ def _inside_lie(event: Any) -> bool:
 
 def bf16_native() -> bool:
     """The CPU computes in bf16 natively (AVX512-BF16 or AMX), read from the CPU's flags; never assumed."""
-    try:
-        flags = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return False
-    return any(f in flags.split() for f in ("avx512_bf16", "amx_bf16"))
+    from posediff.hardware import native_bf16
+
+    return native_bf16()
 
 
 def fit_curve(overrides: list[str], steps: int) -> dict[str, Any]:
@@ -298,6 +304,7 @@ def ab_steps(configs: dict[str, list[str]], rounds: int, warmup: int) -> dict[st
     import statistics
 
     import lightning as L
+    import torch
 
     built = {}
     batch = None
@@ -311,13 +318,15 @@ def ab_steps(configs: dict[str, list[str]], rounds: int, warmup: int) -> dict[st
         module.on_fit_start()
         if batch is None:
             batch = next(iter(datamodule.train_dataloader()))
-        built[name] = (module, opt)
+        bf16 = "bf16" in str(cfg.trainer.precision)
+        built[name] = (module, opt, bf16)
     times: dict[str, list[float]] = {k: [] for k in built}
     cpu: dict[str, list[float]] = {k: [] for k in built}
     for r in range(warmup + rounds):
-        for name, (module, opt) in built.items():
+        for name, (module, opt, bf16) in built.items():
             t, c = time.perf_counter(), time.process_time()
-            loss = module.training_step(batch, r)
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):  # as Lightning's bf16-mixed
+                loss = module.training_step(batch, r)
             loss.backward()
             opt.step()
             opt.zero_grad(set_to_none=True)
@@ -423,15 +432,20 @@ def _median_run(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def curve(args: argparse.Namespace, results: dict[str, Any]) -> int:
-    """Equal learning: the held-out loss after ``--curve`` steps, today's path against the defaults."""
+    """Equal learning: the held-out loss after ``--curve`` steps of two code paths (``--curve-paths``;
+    today's against the defaults unless told), seeds 0 and 1: equal when the paths differ by no more
+    than the seeds do."""
     out = (
         RESULTS / "train_step_curve.json" if args.out == str(RESULTS / "train_step.json") else Path(args.out)
     )
     results["curve_steps"] = args.curve
     results["runs"] = {}
     name = args.only[0]
+    base_path, new_path = args.curve_paths
+    results["curve_paths"] = [base_path, new_path]
     for seed in (0, 1):
-        for path, extra in (("today", TODAY), ("defaults", [])):
+        for path in (base_path, new_path):
+            extra = CURVE_PATHS[path]
             spec = {
                 "kind": "curve",
                 "overrides": [*EXPERIMENTS[name], *extra, f"seed={seed}"],
@@ -445,9 +459,10 @@ def curve(args: argparse.Namespace, results: dict[str, Any]) -> int:
             out.with_suffix(".tmp").replace(out)
     v = {k: r.get("val_loss") for k, r in results["runs"].items()}
     if all(x is not None for x in v.values()):
-        seed_gap = abs(v["today_seed0"] - v["today_seed1"])
+        seed_gap = abs(v[f"{base_path}_seed0"] - v[f"{base_path}_seed1"])
         path_gap = max(
-            abs(v["today_seed0"] - v["defaults_seed0"]), abs(v["today_seed1"] - v["defaults_seed1"])
+            abs(v[f"{base_path}_seed0"] - v[f"{new_path}_seed0"]),
+            abs(v[f"{base_path}_seed1"] - v[f"{new_path}_seed1"]),
         )
         results["verdict"] = {
             "seed_gap": seed_gap,
@@ -480,6 +495,14 @@ def main() -> int:
     ap.add_argument("--curve", type=int, default=0, metavar="STEPS",
                     help="instead: today's code path and posediff's defaults, seeds 0 and 1, STEPS steps each; "
                     "the held-out loss after them (writes train_step_curve.json)")  # fmt: skip
+    ap.add_argument(
+        "--curve-paths",
+        nargs=2,
+        choices=list(CURVE_PATHS),
+        default=["today", "defaults"],
+        metavar=("BASE", "NEW"),
+        help=f"the two code paths --curve compares ({', '.join(CURVE_PATHS)})",
+    )
     ap.add_argument("--out", default=str(RESULTS / "train_step.json"))
     args = ap.parse_args()
     if args.worker:
@@ -520,6 +543,9 @@ def main() -> int:
             configs = {"today": [*EXPERIMENTS[name], *TODAY], "defaults": list(EXPERIMENTS[name])}
             for lever in ("foreach_adam", "fused_adam", "channels_last", "fused_channels_last"):
                 configs[lever] = [*EXPERIMENTS[name], *TODAY, *LEVERS[lever][1]]
+            if bf16_native():
+                configs["bf16"] = [*EXPERIMENTS[name], *TODAY, *LEVERS["bf16"][1]]
+                configs["defaults_bf16"] = [*EXPERIMENTS[name], *LEVERS["bf16"][1]]
             exp["interleaved"] = run_worker(
                 {"kind": "ab", "configs": configs, "rounds": args.ab, "warmup": 3}, None
             )

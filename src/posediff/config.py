@@ -6,6 +6,8 @@
 * ``${posediff.has_translation:${group._target_}}`` — whether the group's poses carry a translation.
 * ``${posediff.pose_input_dim:${group._target_},${module.pose_input}}`` — the width of what the
   denoiser sees of a noisy pose (:meth:`posediff.module.PoseDiffusionModule.pose_input_dim`).
+* ``${posediff.fast_precision:${trainer.accelerator}}`` — ``bf16-mixed`` where the accelerator
+  computes bf16 natively, else ``32-true`` (:func:`posediff.hardware.fast_precision`).
 * ``${posediff.run_id:}`` — a random token, new for every command (:func:`new_run_id`), so that two
   runs started in the same second get their own folders (``outputs/fit/<time>_<token>``).
 """
@@ -32,6 +34,12 @@ def _has_translation(target: str) -> bool:
     return int(get_class(target).matrix_dim) == 4
 
 
+def _fast_precision(accelerator: str = "auto") -> str:
+    from .hardware import fast_precision
+
+    return fast_precision(str(accelerator))
+
+
 def _pose_input_dim(target: str, pose_input: str) -> int:
     from .module import PoseDiffusionModule
 
@@ -48,5 +56,7 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("posediff.has_translation", _has_translation)
     if not OmegaConf.has_resolver("posediff.run_id"):
         OmegaConf.register_new_resolver("posediff.run_id", lambda: _RUN_ID[0])
+    if not OmegaConf.has_resolver("posediff.fast_precision"):
+        OmegaConf.register_new_resolver("posediff.fast_precision", _fast_precision)
     if not OmegaConf.has_resolver("posediff.pose_input_dim"):
         OmegaConf.register_new_resolver("posediff.pose_input_dim", _pose_input_dim)
