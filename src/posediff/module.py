@@ -301,8 +301,12 @@ class PoseDiffusionModule(L.LightningModule):
             return total
         probe = not self.anchor and self.aux_weight == 0 and hasattr(self.encoder, "head_pose")
         if probe:  # the pose head as a linear probe: trained on the detached feature, never the encoder
-            R, t, emb, logits = self.encoder.head_pose(enc.feature.detach(), enc.ray, enc.crop_translation)
-            enc = Encoding(enc.feature, R, t, enc.located, enc.crop_translation, enc.ray, emb, logits)
+            R, t, emb, logits = self.encoder.head_pose(
+                enc.feature.detach(), enc.ray, enc.crop_translation, enc.log_size
+            )
+            enc = Encoding(
+                enc.feature, R, t, enc.located, enc.crop_translation, enc.ray, emb, logits, enc.log_size
+            )
         rotation_loss = None  # min_S ‖R̂ − R·S‖²_F, computed once for the log and (6-D head) the loss
         if enc.rotation is not None:
             trains = (self.aux_weight > 0 or probe) and enc.embedding is None

@@ -140,3 +140,92 @@ def test_a_non_finite_crop_box_is_an_error_before_roi_align(bad: float) -> None:
     with pytest.raises(CropBoxError, match="not finite"):
         enc(image)
     enc.crop(image, torch.zeros(2, 3))  # finite boxes still crop
+
+
+def _disk_images(radii: list[float], size: int = 128, grey: float = 0.6) -> torch.Tensor:
+    """Grey disks of the given radii (pixels) at the image centre on black, edge pixels anti-aliased."""
+    yy, xx = torch.meshgrid(torch.arange(size) + 0.5, torch.arange(size) + 0.5, indexing="ij")
+    r = ((xx - size / 2) ** 2 + (yy - size / 2) ** 2).sqrt()
+    return torch.stack([(grey * (rad + 0.5 - r).clamp(0, 1)).expand(3, size, size) for rad in radii])
+
+
+def _size_encoder(cue: str = "size") -> PoseEncoder:
+    torch.manual_seed(0)
+    enc = PoseEncoder(image_size=128, crop_size=64, out_dim=16, crop_jitter=0.0, depth_cue=cue)
+    with torch.no_grad():  # no learned offsets: the depth is the apparent size's alone
+        enc.pose_head.weight.zero_()
+        enc.locator.depth.weight.zero_()
+    return enc
+
+
+def test_size_depth_follows_the_apparent_size() -> None:
+    """``depth_cue="size"``: an object half as large in the image is twice as far (area ∝ 1/z²), for the
+    locator and the anchor alike; the reference is the running mean of the training images' log-area."""
+    enc = _size_encoder().train()
+    radii = [12.0, 16.0, 24.0]
+    images = _disk_images(radii)
+    pose = torch.eye(4).repeat(3, 1, 1)
+    out = enc(images, pose=pose)
+    assert out.log_size is not None and bool(torch.isfinite(enc.log_area_mean))
+    z_cam = out.translation[:, 2] + SCENE_DISTANCE
+    z_loc = out.located[:, 2] + SCENE_DISTANCE
+    for z in (z_cam, z_loc):
+        # radius ratio 2 → depth ratio 1/2 (edge anti-aliasing: within 2 %)
+        assert_close(z[0] / z[2], torch.tensor(radii[2] / radii[0]), rtol=0.02, atol=0.0)
+        assert_close(z[1] / z[2], torch.tensor(radii[2] / radii[1]), rtol=0.02, atol=0.0)
+    # the first batch sets the reference: the geometric-mean area sits at the scene centre's depth
+    assert_close(out.log_size.mean(), torch.tensor(0.0), atol=1e-5, rtol=0.0)
+
+
+def test_size_reference_is_a_running_mean_kept_in_the_state_dict() -> None:
+    enc = _size_encoder().train()
+    pose = torch.eye(4).repeat(2, 1, 1)
+    enc(_disk_images([10.0, 10.0]), pose=pose)
+    first = enc.log_area_mean.clone()
+    enc(_disk_images([20.0, 20.0]), pose=pose)
+    area_ratio_log = math.log(4.0)
+    assert_close(enc.log_area_mean, first + 0.01 * area_ratio_log, rtol=0.0, atol=2e-3)
+    enc.eval()
+    before = enc.log_area_mean.clone()
+    enc(_disk_images([30.0]))
+    assert torch.equal(enc.log_area_mean, before), "evaluation does not move the reference"
+    assert "log_area_mean" in enc.state_dict()
+    plain = PoseEncoder(image_size=128, crop_size=64, out_dim=16)
+    assert "log_area_mean" not in plain.state_dict() and plain(_disk_images([10.0])).log_size is None
+
+
+def test_size_depth_moves_the_crop_along_its_ray_and_has_gradients() -> None:
+    """The anchor's x, y are the crop centre's ray at the new depth: the projection is unchanged."""
+    enc = _size_encoder().train()
+    images = _disk_images([12.0, 24.0])
+    pose = torch.eye(4).repeat(2, 1, 1)
+    pose[:, 0, 3] = 0.8
+    out = enc(images, pose=pose)
+    t_crop, t = out.crop_translation, out.translation
+    u_crop = t_crop[:, 0] / (t_crop[:, 2] + SCENE_DISTANCE)
+    u = t[:, 0] / (t[:, 2] + SCENE_DISTANCE)
+    assert_close(u, u_crop, rtol=1e-5, atol=1e-6)
+    loss = t.square().sum() + out.located.square().sum()
+    loss.backward()
+    grads = [p.grad for p in enc.parameters() if p.grad is not None]
+    assert grads and all(bool(torch.isfinite(g).all()) for g in grads)
+    assert float(enc.pose_head.weight.grad.abs().sum()) > 0
+
+
+def test_size_depth_bad_configuration_is_one_line() -> None:
+    with pytest.raises(ValueError, match="unknown depth_cue 'area'; choose one of: null, size, size_head"):
+        PoseEncoder(image_size=64, crop_size=32, depth_cue="area")
+    with pytest.raises(ValueError, match="depth_cue=size needs locate-then-crop"):
+        PoseEncoder(image_size=64, depth_cue="size")
+    with pytest.raises(ValueError, match=r"background_level must be in \(0, 1\)"):
+        PoseEncoder(image_size=64, crop_size=32, depth_cue="size", background_level=1.5)
+
+
+def test_size_head_leaves_the_locator_depth_regressed() -> None:
+    """``depth_cue="size_head"``: the anchor's depth follows the apparent size, the locator's does not
+    (its untrained linear depth head says the scene centre for every size)."""
+    enc = _size_encoder("size_head").train()
+    out = enc(_disk_images([12.0, 24.0]), pose=torch.eye(4).repeat(2, 1, 1))
+    assert_close(out.located[:, 2], torch.zeros(2))
+    z = out.translation[:, 2] + SCENE_DISTANCE
+    assert_close(z[0] / z[1], torch.tensor(2.0), rtol=0.02, atol=0.0)

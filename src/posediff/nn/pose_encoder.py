@@ -42,6 +42,8 @@ from .encoder import ResNetEncoder
 
 #: the rotation heads: a 6-D rotation (Gram–Schmidt), or symmetry-invariant embeddings per shape
 ROTATION_HEADS = ("6d", "invariant")
+#: where the anchor's depth comes from: regressed (None) or the object's apparent size ("size")
+DEPTH_CUES = (None, "size", "size_head")
 #: the children of a torchvision ResNet that form the trunk (all but avgpool and fc), in order
 _TORCHVISION_TRUNK = ("conv1", "bn1", "relu", "maxpool", "layer1", "layer2", "layer3", "layer4")
 
@@ -86,7 +88,8 @@ class Encoding:
     ``rotation (B, 3, 3)`` and ``translation (B, 3)`` (scene frame; ``None`` for rotation-only), and
     the locator's own estimate ``located (B, 3)`` (``None`` without a crop), trained by regression;
     ``crop_translation`` / ``ray`` the crop's translation and ray rotation (``None`` without a crop);
-    ``embedding`` / ``shape_logits`` the invariant head's outputs (``None`` for the 6-D head)."""
+    ``embedding`` / ``shape_logits`` the invariant head's outputs (``None`` for the 6-D head);
+    ``log_size`` the apparent-size depth cue ``(B,)`` (``depth_cue="size"``, else ``None``)."""
 
     feature: Tensor
     rotation: Tensor
@@ -96,6 +99,7 @@ class Encoding:
     ray: Tensor | None = None
     embedding: Tensor | None = None
     shape_logits: Tensor | None = None
+    log_size: Tensor | None = None
 
 
 class _Locator(nn.Module):
@@ -105,8 +109,12 @@ class _Locator(nn.Module):
     offset from the scene centre; back-projected to the scene-frame translation. The soft-argmax
     is translation-equivariant, so the position is learned in a few hundred steps."""
 
-    def __init__(self, image_size: int, width: int, focal: float, scene_distance: float) -> None:
+    def __init__(
+        self, image_size: int, width: int, focal: float, scene_distance: float, size_depth: bool = False
+    ) -> None:
         super().__init__()
+        #: depth from apparent size (``z = z₀·exp(½(log_size + δ))``, δ learned) instead of a linear offset
+        self.size_depth = bool(size_depth)
         w = int(width)
         self.convs = nn.Sequential(
             nn.Conv2d(5, w // 2, 3, stride=2, padding=1), nn.BatchNorm2d(w // 2), nn.ReLU(inplace=True),
@@ -126,7 +134,7 @@ class _Locator(nn.Module):
         yy, xx = torch.meshgrid(lin, lin, indexing="ij")
         self.register_buffer("coords", torch.stack([xx, yy])[None], persistent=False)
 
-    def forward(self, image: Tensor) -> Tensor:
+    def forward(self, image: Tensor, log_size: Tensor | None = None) -> Tensor:
         h = self.convs(torch.cat([image, self.coords.expand(image.shape[0], -1, -1, -1)], dim=1))
         b, _, hh, ww = h.shape
         prob = self.heat(h).flatten(1).softmax(-1).view(b, hh, ww)
@@ -136,7 +144,11 @@ class _Locator(nn.Module):
         u = (prob.sum(1) * xs).sum(-1)
         v = (prob.sum(2) * ys).sum(-1)
         dz = self.depth(h.mean((-2, -1)))[:, 0]
-        z = self.scene_distance + dz
+        if self.size_depth and log_size is not None:
+            z = self.scene_distance * torch.exp(0.5 * (log_size + dz))
+            dz = z - self.scene_distance
+        else:
+            z = self.scene_distance + dz
         c = self.image_size / 2.0
         return torch.stack([(u - c) / self.focal * z, (v - c) / self.focal * z, dz], dim=-1)
 
@@ -161,6 +173,17 @@ class PoseEncoder(nn.Module):
             around the truth — about the locator's error (its depth, from apparent size, is the coarsest).
         fov_deg, scene_distance: the camera (module docstring).
         locator_width: channels of the locator's second convolution.
+        depth_cue: ``None`` — the depth is regressed like x and y; ``"size"`` (beyond the paper; scenes
+            on a dark background, as SYMSOL-T) — from the object's apparent size: its image area ``a``
+            (the fraction of pixels brighter than ``background_level``, edge pixels fractional) falls
+            as ``1/z²``, so ``z = z₀·exp(½(log a_ref − log a))`` with ``log a_ref`` the running mean
+            of ``log a`` (training) plus a learned offset — the locator's from its pooled features, the
+            pose head's from the crop's (which see the shape and its orientation, on which the area at
+            ``z₀`` depends); the crop's x and y follow its ray to that depth. ``"size_head"``: the pose
+            head's depth only, the locator's regressed as without a cue. Linear offsets need weights
+            far larger than Adam at 1e-4 moves in thousands of steps (the depth signal is a few percent
+            of the pooled features); this parameterisation has the physics and learns only ``a_ref``.
+        background_level: the grey level (0–1) below which a pixel is background (``depth_cue="size"``).
         rotation_head: ``"6d"`` (a rotation by Gram–Schmidt, trained by ``min_S ‖R̂ − R·S‖²``) or
             ``"invariant"`` (beyond the paper, SYMSOL shapes): per shape the symmetry-invariant
             embedding φ(R_allo) of :func:`~posediff.symmetry.invariant_embedding` plus shape logits,
@@ -185,6 +208,8 @@ class PoseEncoder(nn.Module):
         fov_deg: float = 60.0,
         scene_distance: float = 5.25 / math.tan(math.radians(30.0)),
         locator_width: int = 32,
+        depth_cue: str | None = None,
+        background_level: float = 0.05,
         rotation_head: str = "6d",
         shapes: Sequence[str] = SHAPES,
     ) -> None:
@@ -200,6 +225,15 @@ class PoseEncoder(nn.Module):
             raise ValueError(
                 f"rotation_head=invariant covers the SYMSOL shapes {SHAPES}; got shapes={list(shapes)}"
             )
+        if depth_cue not in DEPTH_CUES:
+            raise ValueError(f"unknown depth_cue {depth_cue!r}; choose one of: null, size, size_head")
+        if depth_cue is not None and crop_size is None:
+            raise ValueError(f"depth_cue={depth_cue} needs locate-then-crop (crop_size set)")
+        if not 0.0 < float(background_level) < 1.0:
+            raise ValueError(f"background_level must be in (0, 1), got {background_level}")
+        self.depth_cue, self.background_level = depth_cue, float(background_level)
+        if depth_cue is not None:  # the running mean of log a over training images (NaN: none seen yet)
+            self.register_buffer("log_area_mean", torch.tensor(float("nan")))
         #: decode the invariant head's rotation in training too (the anchored denoiser needs it)
         self.decode_in_training = True
         if crop_size is not None and not translation:
@@ -227,7 +261,7 @@ class PoseEncoder(nn.Module):
         self.register_buffer("std", base.std.clone(), persistent=False)
         channels = base.head[0].in_channels
         side = -(-trunk_size // 32)
-        geometry = 3 if self.crop_size is not None else 0
+        geometry = (3 if self.crop_size is not None else 0) + (1 if depth_cue is not None else 0)
         self.reduce = nn.Sequential(
             nn.Conv2d(channels, head_channels, 1), nn.ReLU(inplace=True), nn.Flatten()
         )
@@ -249,7 +283,7 @@ class PoseEncoder(nn.Module):
             if rotation_head == "6d":
                 self.pose_head.bias[:6] = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
         self.locator = (
-            _Locator(self.image_size, locator_width, self.focal, self.scene_distance)
+            _Locator(self.image_size, locator_width, self.focal, self.scene_distance, depth_cue == "size")
             if self.crop_size is not None
             else None
         )
@@ -331,8 +365,9 @@ class PoseEncoder(nn.Module):
         ray = None
         extra: list[Tensor] = []
         x = image
+        log_size = self.log_size(image) if self.depth_cue is not None else None
         if self.locator is not None:
-            located = self.locator(image)
+            located = self.locator(image, log_size)
             if self.training and pose is not None:
                 t0 = pose[:, :3, 3].to(image.dtype)
                 t_crop = t0 + self.crop_jitter * torch.randn_like(t0)
@@ -342,18 +377,43 @@ class PoseEncoder(nn.Module):
             extra.append(t_crop)
         f = self.reduce(self.trunk((x - self.mean) / self.std))
         t_crop = extra[0] if extra else None
-        feature = self.dense(torch.cat([f, t_crop], dim=1) if t_crop is not None else f)
-        rotation, translation, embedding, logits = self.head_pose(feature, ray, t_crop)
-        return Encoding(feature, rotation, translation, located, t_crop, ray, embedding, logits)
+        if log_size is not None:
+            extra.append(log_size[:, None].to(f.dtype))
+        feature = self.dense(torch.cat([f, *extra], dim=1) if extra else f)
+        rotation, translation, embedding, logits = self.head_pose(feature, ray, t_crop, log_size)
+        return Encoding(feature, rotation, translation, located, t_crop, ray, embedding, logits, log_size)
+
+    def log_size(self, image: Tensor) -> Tensor:
+        """The apparent-size cue ``(B,)``: ``log a_ref − log a``, ``a`` the image's object area (the
+        fraction of pixels brighter than ``background_level``; edge pixels count by their grey level)
+        and ``log a_ref`` its running mean over training images (updated in training mode, kept in the
+        state dict), so that ``z₀·exp(½·log_size)`` is the depth of an average object of that size."""
+        grey = image.float().mean(1)
+        area = (grey / self.background_level).clamp(0.0, 1.0).mean((-2, -1)).clamp_min(1e-4)
+        log_area = area.log()
+        mean = self.log_area_mean
+        batch_mean = log_area.detach().mean()
+        if self.training:
+            with torch.no_grad():  # no data-dependent branch: the first batch's mean, then a running mean
+                mean.copy_(torch.where(torch.isnan(mean), batch_mean, mean.lerp(batch_mean, 0.01)))
+        ref = torch.where(torch.isnan(mean), batch_mean, mean)
+        return ref - log_area
 
     def head_pose(
-        self, feature: Tensor, ray: Tensor | None = None, crop_translation: Tensor | None = None
+        self,
+        feature: Tensor,
+        ray: Tensor | None = None,
+        crop_translation: Tensor | None = None,
+        log_size: Tensor | None = None,
     ) -> tuple[Tensor | None, Tensor | None, Tensor | None, Tensor | None]:
         """The pose head on a feature: rotation ``(B, 3, 3)`` (egocentric: ``R_ray · R_allo`` with a
         crop), translation ``(B, 3)`` (the crop's plus the head's offset; ``None`` for rotation-only),
         and for the invariant head its embeddings ``(B, D)`` and shape logits ``(B, K)`` (the rotation
         is then decoded for the most likely shape, without gradient; ``None`` in training unless
-        :attr:`decode_in_training`). Called on a detached feature it is a linear probe."""
+        :attr:`decode_in_training`). With ``log_size`` (``depth_cue="size"``) the depth is
+        ``z₀·exp(½(log_size + δ))``, δ the head's third translation output, and the crop's x, y are moved
+        along its ray to that depth before the head's x, y offsets. Called on a detached feature it is
+        a linear probe."""
         head = self.pose_head(feature)
         embedding = logits = None
         if self.rotation_head == "6d":
@@ -369,7 +429,14 @@ class PoseEncoder(nn.Module):
         translation = None
         if self.translation:
             w = self.rotation_width
-            translation = head[:, w : w + 3] + (crop_translation if crop_translation is not None else 0.0)
+            offset = head[:, w : w + 3]
+            if log_size is not None and crop_translation is not None:
+                z0 = self.scene_distance
+                z_cam = z0 * torch.exp(0.5 * (log_size.to(offset.dtype) + offset[:, 2]))
+                along_ray = crop_translation[:, :2] * (z_cam / (crop_translation[:, 2] + z0))[:, None]
+                translation = torch.cat([along_ray + offset[:, :2], (z_cam - z0)[:, None]], dim=1)
+            else:
+                translation = offset + (crop_translation if crop_translation is not None else 0.0)
         return rotation, translation, embedding, logits
 
     def decode(self, embedding: Tensor, logits: Tensor, **kw: int) -> Tensor:
