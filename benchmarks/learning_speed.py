@@ -76,8 +76,8 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "quickstart_se3": ("the same on SE(3)", ["group=se3"]),
     "quickstart_one_lr": ("the same with the denoiser at the encoder's 1e-4", ["module.denoiser_lr=null"]),
     "quickstart_size_depth": (
-        "the same with the depth from the apparent size (encoder.depth_cue=size)",
-        ["encoder.depth_cue=size"],
+        "the same with the pose head's depth from the apparent size (encoder.depth_cue=size_head)",
+        ["encoder.depth_cue=size_head"],
     ),
     "regression_6d": (
         "locate-then-crop, the regression baseline, 6-D head (min over the symmetries)",
