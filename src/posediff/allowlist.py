@@ -74,6 +74,7 @@ TRAINER_ONLY: frozenset[str] = frozenset(
         "lightning.pytorch.loggers.TensorBoardLogger",
         "posediff.callbacks.progress_bar",
         "posediff.callbacks.ProgressLog",
+        "posediff.callbacks.TestCurve",
         "posediff.checkpoint_io.AtomicCheckpointIO",
         "posediff.report.ReportCallback",
         "posediff.evaluation.report.ReportCallback",

@@ -4,12 +4,14 @@ training precision that follows from it.
 * :func:`native_bf16` — the CPU has bf16 dot-product instructions (AVX512-BF16 or AMX-BF16, read
   from ``/proc/cpuinfo``'s flags) and PyTorch's oneDNN uses them; where that is so, bf16 autocast
   runs the ResNet's convolutions faster than float32 (1.3× a ``quickstart`` step on a 2-core AMD
-  EPYC with AVX512-BF16, ``benchmarks/results/train_step.md``). Without them autocast would emulate
-  bf16 and be slower.
+  EPYC with AVX512-BF16, ``benchmarks/results/train_step_bf16.md``). Without them autocast would
+  emulate bf16 and be slower.
 * :func:`fast_precision` — Lightning's ``precision`` for a training run: ``"bf16-mixed"`` where the
-  accelerator computes bf16 natively (a CUDA GPU with bf16, or such a CPU), else ``"32-true"``. The
-  configs use it as ``trainer.precision: ${posediff.fast_precision:}``; the run's stored config
-  records what it resolved to, and ``trainer.precision=32-true`` turns it off.
+  accelerator computes bf16 natively (a CUDA GPU with bf16, or such a CPU), else ``"32-true"``. No
+  experiment uses it by default (bf16 did not pass the equal-learning check on the CPU,
+  ``benchmarks/results/train_step_curve_bf16.json``); a run opts in with
+  ``trainer.precision='${posediff.fast_precision:${trainer.accelerator}}'``, and its stored config
+  records what that resolved to.
 """
 
 from __future__ import annotations

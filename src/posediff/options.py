@@ -123,6 +123,7 @@ BOUNDS: dict[str, Whole | Real] = {
     "pose_max_period": _POSITIVE,
     "object_radius": _POSITIVE,
     "crop_margin": _POSITIVE,
+    "background_level": Real(0.0, 1.0, open_low=True, open_high=True),
     # diffusion
     "num_levels": Whole(2, 10_000),
     "sigma_min": _POSITIVE,

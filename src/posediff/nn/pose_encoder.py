@@ -42,7 +42,8 @@ from .encoder import ResNetEncoder
 
 #: the rotation heads: a 6-D rotation (Gram–Schmidt), or symmetry-invariant embeddings per shape
 ROTATION_HEADS = ("6d", "invariant")
-#: where the anchor's depth comes from: regressed (None) or the object's apparent size ("size")
+#: where the depth comes from: regressed (None), or the apparent size for the locator and the pose head
+#: ("size") or the pose head only ("size_head")
 DEPTH_CUES = (None, "size", "size_head")
 #: the children of a torchvision ResNet that form the trunk (all but avgpool and fc), in order
 _TORCHVISION_TRUNK = ("conv1", "bn1", "relu", "maxpool", "layer1", "layer2", "layer3", "layer4")
@@ -89,7 +90,7 @@ class Encoding:
     the locator's own estimate ``located (B, 3)`` (``None`` without a crop), trained by regression;
     ``crop_translation`` / ``ray`` the crop's translation and ray rotation (``None`` without a crop);
     ``embedding`` / ``shape_logits`` the invariant head's outputs (``None`` for the 6-D head);
-    ``log_size`` the apparent-size depth cue ``(B,)`` (``depth_cue="size"``, else ``None``)."""
+    ``log_size`` the apparent-size depth cue ``(B,)`` (with a ``depth_cue``, else ``None``)."""
 
     feature: Tensor
     rotation: Tensor
@@ -183,7 +184,7 @@ class PoseEncoder(nn.Module):
             head's depth only, the locator's regressed as without a cue. Linear offsets need weights
             far larger than Adam at 1e-4 moves in thousands of steps (the depth signal is a few percent
             of the pooled features); this parameterisation has the physics and learns only ``a_ref``.
-        background_level: the grey level (0–1) below which a pixel is background (``depth_cue="size"``).
+        background_level: the grey level (0–1) below which a pixel is background (with a ``depth_cue``).
         rotation_head: ``"6d"`` (a rotation by Gram–Schmidt, trained by ``min_S ‖R̂ − R·S‖²``) or
             ``"invariant"`` (beyond the paper, SYMSOL shapes): per shape the symmetry-invariant
             embedding φ(R_allo) of :func:`~posediff.symmetry.invariant_embedding` plus shape logits,
@@ -410,7 +411,7 @@ class PoseEncoder(nn.Module):
         crop), translation ``(B, 3)`` (the crop's plus the head's offset; ``None`` for rotation-only),
         and for the invariant head its embeddings ``(B, D)`` and shape logits ``(B, K)`` (the rotation
         is then decoded for the most likely shape, without gradient; ``None`` in training unless
-        :attr:`decode_in_training`). With ``log_size`` (``depth_cue="size"``) the depth is
+        :attr:`decode_in_training`). With ``log_size`` (a ``depth_cue``) the depth is
         ``z₀·exp(½(log_size + δ))``, δ the head's third translation output, and the crop's x, y are moved
         along its ray to that depth before the head's x, y offsets. Called on a detached feature it is
         a linear probe."""
