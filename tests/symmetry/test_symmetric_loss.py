@@ -153,3 +153,54 @@ def test_pose_encoder_embedding_loss_is_zero_at_the_truth_and_needs_its_shapes()
         assert torch.rad2deg(min_angle_to_equivalents(name, decoded[i].double(), R[i].double())) < 1.5
     with pytest.raises(ValueError, match="covers"):
         enc.embedding_loss(out, torch.tensor([0, 1, 2, 3]), R)
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_standardised_embedding_has_one_spread_and_round_trips(shape: str) -> None:
+    from posediff.symmetry import STANDARD_EMBEDDING_SPREAD, standardise_embedding, unstandardise_embedding
+
+    R = _rand(4096, 15)  # other draws than the statistics' own
+    z = standardise_embedding(shape, invariant_embedding(shape, R))
+    spread = z.square().sum(-1).mean().sqrt().item()
+    assert abs(spread - STANDARD_EMBEDDING_SPREAD) < 0.05 * STANDARD_EMBEDDING_SPREAD  # (measured ≤ 1 %)
+    assert z.mean(0).norm().item() < 0.05 * STANDARD_EMBEDDING_SPREAD  # centred
+    assert_close(unstandardise_embedding(shape, z), invariant_embedding(shape, R))
+    G = symmetry_group(shape, dtype=F64, step_deg=7.5)  # still invariant
+    eq = standardise_embedding(shape, invariant_embedding(shape, R[:8, None] @ G[None]))
+    assert (eq - z[:8, None]).abs().max() < 1e-10
+
+
+def test_raw_embeddings_differ_in_spread_by_far_more_than_the_standardised() -> None:
+    """Why the standardisation exists: the icosahedron's raw φ varies ~18× less than the cone's."""
+    from posediff.symmetry import embedding_statistics
+
+    spreads = {s: embedding_statistics(s)[1] for s in SHAPES}
+    assert spreads["icosa"] < 0.3 < 3.5 < spreads["cone"]
+
+
+def test_pose_encoder_haar_targets_are_standardised_and_decoded_back() -> None:
+    from posediff.nn import Encoding, PoseEncoder
+    from posediff.symmetry import standardise_embedding
+
+    enc = PoseEncoder(image_size=32, out_dim=8, translation=False, rotation_head="invariant",
+                      shapes=["icosa", "cube"], embedding_scale="haar")  # fmt: skip
+    R = _rand(4, 16).float()
+    ids = torch.tensor([2, 1, 2, 1])  # icosa, cube (indices in SHAPES)
+    emb = torch.zeros(4, 96)
+    emb[ids == 2, :48] = standardise_embedding("icosa", invariant_embedding("icosa", R[ids == 2]))
+    emb[ids == 1, 48:] = standardise_embedding("cube", invariant_embedding("cube", R[ids == 1]))
+    logits = torch.full((4, 2), -30.0)
+    logits[torch.arange(4), torch.tensor([0, 1, 0, 1])] = 30.0
+    out = Encoding(torch.zeros(4, 8), None, embedding=emb, shape_logits=logits)
+    assert enc.embedding_loss(out, ids, R).abs().max() < 1e-4
+    raw = PoseEncoder(
+        image_size=32, out_dim=8, translation=False, rotation_head="invariant", shapes=["icosa", "cube"]
+    )
+    assert raw.embedding_loss(out, ids, R).min() > 1.0  # the raw head reads the same outputs as wrong
+    decoded = enc.decode(emb, logits)
+    for i, name in enumerate(["icosa", "cube", "icosa", "cube"]):
+        assert torch.rad2deg(min_angle_to_equivalents(name, decoded[i].double(), R[i].double())) < 1.5
+    with pytest.raises(ValueError, match="embedding_scale"):
+        PoseEncoder(
+            image_size=32, out_dim=8, translation=False, rotation_head="invariant", embedding_scale="unit"
+        )

@@ -37,7 +37,14 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from ..symmetry import SHAPES, decode_embedding, embedding_dim, invariant_embedding
+from ..symmetry import (
+    SHAPES,
+    decode_embedding,
+    embedding_dim,
+    invariant_embedding,
+    standardise_embedding,
+    unstandardise_embedding,
+)
 from .encoder import ResNetEncoder
 
 #: the rotation heads: a 6-D rotation (Gram–Schmidt), or symmetry-invariant embeddings per shape
@@ -45,6 +52,8 @@ ROTATION_HEADS = ("6d", "invariant")
 #: where the depth comes from: regressed (None), or the apparent size for the locator and the pose head
 #: ("size") or the pose head only ("size_head")
 DEPTH_CUES = (None, "size", "size_head")
+#: the invariant head's targets: the raw embedding, or centred and scaled to one spread per shape
+EMBEDDING_SCALES = ("raw", "haar")
 #: the children of a torchvision ResNet that form the trunk (all but avgpool and fc), in order
 _TORCHVISION_TRUNK = ("conv1", "bn1", "relu", "maxpool", "layer1", "layer2", "layer3", "layer4")
 
@@ -191,6 +200,11 @@ class PoseEncoder(nn.Module):
             regressed by squared error — a continuous target, where a rotation picked out of the
             equivalence class jumps; the rotation is decoded from it (no gradient).
         shapes: the shapes the invariant head covers (its classifier's classes).
+        embedding_scale: the invariant head's targets: ``"raw"`` (φ as
+            :func:`~posediff.symmetry.invariant_embedding` gives it) or ``"haar"`` (centred and scaled to
+            the same spread for every shape, :func:`~posediff.symmetry.standardise_embedding`: the raw
+            icosahedron's φ varies 7× less than the tetrahedron's and 18× less than the cone's, so in a
+            loss summed over shapes it had almost no weight). Decoding undoes the scaling.
     """
 
     def __init__(
@@ -213,13 +227,18 @@ class PoseEncoder(nn.Module):
         background_level: float = 0.05,
         rotation_head: str = "6d",
         shapes: Sequence[str] = SHAPES,
+        embedding_scale: str = "raw",
     ) -> None:
         super().__init__()
         if rotation_head not in ROTATION_HEADS:
             raise ValueError(
                 f"unknown rotation_head {rotation_head!r}; choose one of: {', '.join(ROTATION_HEADS)}"
             )
-        self.rotation_head = rotation_head
+        if embedding_scale not in EMBEDDING_SCALES:
+            raise ValueError(
+                f"unknown embedding_scale {embedding_scale!r}; choose one of: {', '.join(EMBEDDING_SCALES)}"
+            )
+        self.rotation_head, self.embedding_scale = rotation_head, embedding_scale
         self.shapes = tuple(str(x) for x in shapes)
         unknown = [x for x in self.shapes if x not in SHAPES]
         if rotation_head == "invariant" and (unknown or not self.shapes):
@@ -451,7 +470,10 @@ class PoseEncoder(nn.Module):
             i, j = self._slices[name]
             if self.training and "rounds" not in kw:  # in training a coarser search (12° … 3°) is enough
                 kw = {**kw, "rounds": 3}
-            out[sel] = decode_embedding(name, embedding[sel, i:j], **kw)
+            phi = embedding[sel, i:j]
+            if self.embedding_scale == "haar":
+                phi = unstandardise_embedding(name, phi.detach())
+            out[sel] = decode_embedding(name, phi, **kw)
         return out
 
     def embedding_loss(self, enc: Encoding, shape_ids: Tensor, R_gt: Tensor) -> Tensor:
@@ -475,6 +497,8 @@ class PoseEncoder(nn.Module):
             name = self.shapes[int(k)]
             i, j = self._slices[name]
             target = invariant_embedding(name, R[sel])
+            if self.embedding_scale == "haar":
+                target = standardise_embedding(name, target)
             loss[sel] = loss[sel] + (enc.embedding[sel, i:j] - target).square().sum(-1)
         return loss
 

@@ -366,6 +366,39 @@ def invariant_embedding(shape: str, R: Tensor) -> Tensor:
     return (u @ x.mT).pow(p).sum(-2) / math.sqrt(v.shape[0])
 
 
+#: the spread every shape's standardised embedding has over Haar-random rotations (RMS of ‖φ̃ − E φ̃‖)
+STANDARD_EMBEDDING_SPREAD = 2.0
+
+
+@functools.lru_cache(maxsize=8)
+def embedding_statistics(shape: str) -> tuple[Tensor, float]:
+    """The mean ``(D,)`` and RMS deviation ``‖φ − E φ‖`` of :func:`invariant_embedding` over Haar-random
+    rotations (float64; 65 536 fixed draws, ≈ 0.5 % of the spread). The raw embeddings differ widely
+    here: the icosahedron's varies by 0.22 around a mean of norm 2.42 (a 10° turn moves it by 0.14),
+    the tetrahedron's by 1.56 (0.54), the cone's by 4.0 — so a squared-error loss summed over shapes
+    gives the icosahedron 1/50 of the weight of the cone. :func:`standardise_embedding` evens it out."""
+    from ..lie import SO3
+
+    R = SO3().sample_uniform((65536,), generator=torch.Generator().manual_seed(20261204), dtype=torch.float64)
+    phi = invariant_embedding(_check_shape(shape), R)
+    mean = phi.mean(0)
+    return mean, float((phi - mean).square().sum(-1).mean().sqrt())
+
+
+def standardise_embedding(shape: str, phi: Tensor) -> Tensor:
+    """``φ̃ = (φ − E φ)·s/σ``: the embedding centred over Haar-random rotations and scaled so that its
+    spread is :data:`STANDARD_EMBEDDING_SPREAD` for every shape (:func:`embedding_statistics`). An affine
+    map, so invariant and one-to-one as φ; :func:`unstandardise_embedding` inverts it."""
+    mean, spread = embedding_statistics(shape)
+    return (phi - mean.to(phi)) * (STANDARD_EMBEDDING_SPREAD / spread)
+
+
+def unstandardise_embedding(shape: str, phi: Tensor) -> Tensor:
+    """The raw :func:`invariant_embedding` of a standardised one (:func:`standardise_embedding`)."""
+    mean, spread = embedding_statistics(shape)
+    return phi * (spread / STANDARD_EMBEDDING_SPREAD) + mean.to(phi)
+
+
 @functools.lru_cache(maxsize=8)
 def _embedding_grid(shape: str, n: int) -> tuple[Tensor, Tensor]:
     from ..lie import SO3
@@ -418,6 +451,10 @@ __all__ = [
     "equivalent_rotations",
     "canonical_rotation",
     "decode_embedding",
+    "embedding_statistics",
+    "standardise_embedding",
+    "unstandardise_embedding",
+    "STANDARD_EMBEDDING_SPREAD",
     "embedding_dim",
     "invariant_embedding",
     "min_angle_to_equivalents",
