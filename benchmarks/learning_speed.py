@@ -75,6 +75,10 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     ),
     "quickstart_se3": ("the same on SE(3)", ["group=se3"]),
     "quickstart_one_lr": ("the same with the denoiser at the encoder's 1e-4", ["module.denoiser_lr=null"]),
+    "quickstart_haar": (
+        "the same with the invariant head's targets at one spread per shape (encoder.embedding_scale=haar)",
+        ["encoder.embedding_scale=haar"],
+    ),
     "quickstart_size_depth": (
         "the same with the pose head's depth from the apparent size (encoder.depth_cue=size_head)",
         ["encoder.depth_cue=size_head"],
