@@ -162,14 +162,14 @@ class TestCurve(Callback):
         return list(json.loads(self.path.read_text()).get("rows", []))
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._mark = None  # the clocks start after the first row: it is at the checkpoint's totals exactly
+        if trainer.is_global_zero:
+            step = int(trainer.global_step)
+            kept = [r for r in self._rows() if r["step"] <= step]  # a resume drops rows beyond its checkpoint
+            self._write(trainer, kept)
+            if self.at_start and not any(r["step"] == step for r in kept):
+                self._evaluate(trainer, pl_module)
         self._mark = (time.perf_counter(), time.process_time())
-        if not trainer.is_global_zero:
-            return
-        step = int(trainer.global_step)
-        kept = [r for r in self._rows() if r["step"] <= step]  # a resume drops rows beyond its checkpoint
-        self._write(trainer, kept)
-        if self.at_start and not any(r["step"] == step for r in kept):
-            self._evaluate(trainer, pl_module)
 
     def on_train_batch_end(
         self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int
