@@ -18,6 +18,7 @@ the Haar prior the samplers start from.
     python benchmarks/learning_speed.py --parallel 2          # every variant, 1000 steps (≈ 45 min on 2 cores)
     python benchmarks/learning_speed.py --only quickstart paper --steps 1000
     python benchmarks/learning_speed.py --list
+    python benchmarks/learning_speed.py --steps 2500 --out benchmarks/results/learning_speed_2500.json   # the demo's budget
 
 Results go to ``benchmarks/results/learning_speed.json`` (updated after every run, so an
 interrupted study keeps what finished) and a Markdown table next to it.
@@ -67,7 +68,14 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
         SIXD + DIFFUSION_ONLY,
     ),
     "crop_anchor_aux_6d": ("locate-then-crop, anchored + auxiliary loss, 6-D head", SIXD),
-    "quickstart": ("locate-then-crop, anchored + auxiliary loss, invariant head (the new quickstart)", []),
+    "quickstart": (
+        "locate-then-crop, anchored + auxiliary loss, invariant head at one spread per shape (today's quickstart)",
+        [],
+    ),
+    "quickstart_raw": (
+        "the same with the invariant head's raw targets (quickstart before issue 27: encoder.embedding_scale=raw)",
+        ["encoder.embedding_scale=raw"],
+    ),
     "quickstart_64px": ("the same from 64 px images (crop 64 px upsampled)", D64),
     "quickstart_lr3e-4": (
         "the same with the encoder at Adam 3e-4 → 3e-5",
@@ -75,13 +83,29 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     ),
     "quickstart_se3": ("the same on SE(3)", ["group=se3"]),
     "quickstart_one_lr": ("the same with the denoiser at the encoder's 1e-4", ["module.denoiser_lr=null"]),
-    "quickstart_haar": (
-        "the same with the invariant head's targets at one spread per shape (encoder.embedding_scale=haar)",
-        ["encoder.embedding_scale=haar"],
-    ),
     "quickstart_size_depth": (
         "the same with the pose head's depth from the apparent size (encoder.depth_cue=size_head)",
         ["encoder.depth_cue=size_head"],
+    ),
+    "quickstart_ema_0.99": (
+        "the same, evaluated with an EMA of the weights, decay 0.99 every 5 steps (a window of ~500 steps)",
+        ["ema=authors", "ema.decay=0.99"],
+    ),
+    "quickstart_ema_authors": (
+        "the same with the authors' EMA, decay 0.999 every 5 steps (a window of ~5000 steps)",
+        ["ema=authors"],
+    ),
+    "quickstart_b32_n32": (
+        "images per batch against noisy poses per image: 32 images x 32 noisy poses (quickstart: 16 x 64)",
+        ["data.batch_size=32", "module.num_noisy=32"],
+    ),
+    "quickstart_render": (
+        "rendered on the fly, 8000 poses per shape: no image repeats in 2500 steps (quickstart: 10 000 fixed)",
+        ["data.mode=render", "data.n_per_shape_train=8000"],
+    ),
+    "iterative_regression": (
+        "locate-then-crop, the iterative-regression baseline (Table 2): the pose head refined 4 times by the MLP",
+        ["module._target_=posediff.regression.PoseRegressionModule", "+module.iterations=4"],
     ),
     "regression_6d": (
         "locate-then-crop, the regression baseline, 6-D head (min over the symmetries)",
@@ -146,9 +170,12 @@ def _read_log(run_dir: Path) -> dict[str, list[list[float]]]:
     return out
 
 
-def run_variant(name: str, steps: int, probe_every: int, threads: int, extra: list[str]) -> dict:
+def run_variant(
+    name: str, steps: int, probe_every: int, threads: int, extra: list[str], study: str = "learning_speed"
+) -> dict:
+    """One variant's run in ``outputs/<study>/<name>`` (``study``: the results file's stem)."""
     what, overrides = VARIANTS[name]
-    run_dir = ROOT / "outputs" / "learning_speed" / name
+    run_dir = ROOT / "outputs" / study / name
     args = [
         "fit",
         "+experiment=quickstart",
@@ -270,7 +297,8 @@ def main() -> int:
     if unknown:
         print(f"unknown variants {unknown}; available: {', '.join(VARIANTS)}", file=sys.stderr)
         return 2
-    for root, size in (("data/symsolt_uniform_cpu", 64), ("data/symsolt_uniform_cpu128", 128)):
+    needed = {(o.split("=", 1)[1], 64) for n in names for o in VARIANTS[n][1] if o.startswith("data.root=")}
+    for root, size in sorted(needed | {("data/symsolt_uniform_cpu128", 128)}):
         if not (ROOT / root / "test" / "index.npz").is_file():
             print(
                 f"learning_speed: {root} is missing; make it with: posediff data render dataset=symsolt split=train "
@@ -288,7 +316,7 @@ def main() -> int:
 
     def one(name: str) -> None:
         print(f"[learning_speed] {name}: {VARIANTS[name][0]}", flush=True)
-        r = run_variant(name, a.steps, a.probe_every, threads, a.extra)
+        r = run_variant(name, a.steps, a.probe_every, threads, a.extra, out.stem)
         with lock:  # merge with what is on disk (other runs, other study processes), write atomically
             disk = json.loads(out.read_text()) if out.is_file() else {"runs": {}}
             disk.setdefault("runs", {})[name] = r
