@@ -1,4 +1,4 @@
-"""The long CPU run of issue 27: ``posediff fit +experiment=symsolt_cpu_long`` on R³×SO(3) and SE(3), its
+"""The long CPU run of issue 27: ``posediff fit +experiment=symsolt_cpu_long`` on R³×SO(3), SE(3) and the regression baseline, its
 learning curve on the whole SYMSOL-T test split, and the plot against the paper's Table 2.
 
 Each run writes ``<run>/test_curve.json`` as it trains (``posediff.callbacks.TestCurve``: every 2500
@@ -12,7 +12,7 @@ each, so both groups see the same machine) or only collects runs already made (`
   against CPU-minutes, the paper's SE(3) numbers as dashed lines.
 
     python benchmarks/symsolt_cpu_long.py --train --max-steps 15000      # ≈ 1 h 50 min on 2 cores
-    python benchmarks/symsolt_cpu_long.py --runs r3so3=outputs/long/r3so3 se3=outputs/long/se3
+    python benchmarks/symsolt_cpu_long.py --runs r3so3=outputs/long/r3so3 se3=outputs/long/se3 regression=outputs/long/regression
 
 It is safe to run again while the runs train: it reads what the curves hold so far.
 """
@@ -50,13 +50,23 @@ PAPER_STEPS = {"regression": "400k", "iterative regression": "800k", "r3so3": "8
 TARGET_SPREAD_DEG, TARGET_TRANSLATION = 2.0, 0.03
 
 
-def command(group: str, run: Path, max_steps: int) -> list[str]:
-    return ["posediff", "fit", "+experiment=symsolt_cpu_long", f"group={group}", f"trainer.max_steps={max_steps}",
+#: run name → its overrides of ``+experiment=symsolt_cpu_long``: the two diffusion models of Table 2 and
+#: the regression baseline at the same budget (R³×SO(3) data, the same encoder, no denoiser)
+RUNS: dict[str, list[str]] = {
+    "r3so3": ["group=r3so3"],
+    "se3": ["group=se3"],
+    "regression": ["module._target_=posediff.regression.PoseRegressionModule", "module.denoiser=null"],
+}
+STYLES = {"r3so3": "-", "se3": "--", "regression": "-."}
+
+
+def command(name: str, run: Path, max_steps: int) -> list[str]:
+    return ["posediff", "fit", "+experiment=symsolt_cpu_long", *RUNS[name], f"trainer.max_steps={max_steps}",
             "trainer.enable_progress_bar=false", f"hydra.run.dir={run}"]  # fmt: skip
 
 
 def train(groups: list[str], out: Path, max_steps: int) -> dict[str, Path]:
-    """Both runs at once, one CPU thread each (``OMP_NUM_THREADS=1``); returns group → run folder."""
+    """The runs at once, one CPU thread each (``OMP_NUM_THREADS=1``); returns group → run folder."""
     out.mkdir(parents=True, exist_ok=True)
     procs = {}
     for g in groups:
@@ -132,8 +142,10 @@ def markdown(result: dict[str, Any]) -> str:
     lines = [
         "# SYMSOL-T, the long CPU run (issue 27)",
         "",
-        "`python benchmarks/symsolt_cpu_long.py --train` — `posediff fit +experiment=symsolt_cpu_long` per group,",
-        "both at once (one CPU thread each), on " + result["machine"] + ". Whole test split (200 images per",
+        "`python benchmarks/symsolt_cpu_long.py --train` — `posediff fit +experiment=symsolt_cpu_long` per run (each",
+        "run's command is in the JSON), two at a time, one CPU thread each, on "
+        + result["machine"]
+        + ". Whole test split (200 images per",
         "shape), one hypothesis per image, 100 steps of the few-step sampler; coverage on 20 images per shape",
         "with 200 hypotheses. Spread ° / translation error; the paper's Table 2 below each.",
         "",
@@ -184,7 +196,6 @@ def plot(result: dict[str, Any]) -> None:
 
     fig, axes = plt.subplots(2, 2, figsize=(11, 7.5))
     colours = dict(zip(SHAPES, ("C0", "C1", "C2", "C3", "C4"), strict=True))
-    styles = {"r3so3": "-", "se3": "--"}
     for col, (xkey, xlabel) in enumerate(
         (("step", "training steps"), ("cpu_minutes", "CPU-minutes (training)"))
     ):
@@ -193,9 +204,9 @@ def plot(result: dict[str, Any]) -> None:
             rows = res["rows"]
             x = [r[xkey] for r in rows]
             for s in SHAPES:
-                ax_r.plot(x, [r["spread_deg"][s] for r in rows], styles.get(g, ":"), color=colours[s], marker="o",
+                ax_r.plot(x, [r["spread_deg"][s] for r in rows], STYLES.get(g, ":"), color=colours[s], marker="o",
                           ms=3, label=f"{g} {s}")  # fmt: skip
-            ax_t.plot(x, [r["overall_translation_error"] for r in rows], styles.get(g, ":"), color="k", marker="o",
+            ax_t.plot(x, [r["overall_translation_error"] for r in rows], STYLES.get(g, ":"), color="k", marker="o",
                       ms=3, label=f"{g}")  # fmt: skip
         for s in SHAPES:
             ax_r.axhline(PAPER["se3"][s][0], color=colours[s], lw=0.8, ls=":")
@@ -213,7 +224,7 @@ def plot(result: dict[str, Any]) -> None:
         ax_t.grid(alpha=0.3, which="both")
     axes[0, 0].legend(fontsize=6, ncol=2)
     axes[1, 0].legend(fontsize=7)
-    fig.suptitle("posediff on SYMSOL-T, 2-core CPU (solid R³×SO(3), dashed SE(3); dotted: paper SE(3), Table 2)",
+    fig.suptitle("posediff on SYMSOL-T, 2-core CPU (solid R³×SO(3), dashed SE(3), dash-dot regression; dotted: paper SE(3), Table 2)",
                  fontsize=10)  # fmt: skip
     fig.tight_layout()
     import io
@@ -228,7 +239,9 @@ def plot(result: dict[str, Any]) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--train", action="store_true", help="start the runs (else only collect --runs)")
-    ap.add_argument("--groups", nargs="+", default=["r3so3", "se3"])
+    ap.add_argument(
+        "--groups", nargs="+", default=list(RUNS), choices=list(RUNS), help="the runs to train or collect"
+    )
     ap.add_argument("--out", type=Path, default=ROOT / "outputs" / "long")
     ap.add_argument(
         "--max-steps", type=int, default=None, help="trainer.max_steps (default: the experiment's)"
@@ -239,7 +252,7 @@ def main() -> None:
         runs = train(args.groups, args.out, args.max_steps or 50000)
     else:
         runs = {k: Path(v) for k, v in (a.split("=", 1) for a in args.runs)} or {
-            g: args.out / g for g in args.groups
+            g: args.out / g for g in args.groups if (args.out / g).is_dir()
         }
     result = collect(runs, args.max_steps)
     print(markdown(result))
