@@ -297,8 +297,12 @@ def main() -> int:
     if unknown:
         print(f"unknown variants {unknown}; available: {', '.join(VARIANTS)}", file=sys.stderr)
         return 2
-    needed = {(o.split("=", 1)[1], 64) for n in names for o in VARIANTS[n][1] if o.startswith("data.root=")}
-    for root, size in sorted(needed | {("data/symsolt_uniform_cpu128", 128)}):
+    needed = {("data/symsolt_uniform_cpu128", "128")}  # quickstart's; a variant may read other shards
+    for n in names:
+        ov = dict(o.split("=", 1) for o in VARIANTS[n][1])
+        if "data.root" in ov:
+            needed.add((ov["data.root"], ov.get("data.image_size", "128")))
+    for root, size in sorted(needed):
         if not (ROOT / root / "test" / "index.npz").is_file():
             print(
                 f"learning_speed: {root} is missing; make it with: posediff data render dataset=symsolt split=train "
