@@ -99,6 +99,15 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
         "images per batch against noisy poses per image: 32 images x 32 noisy poses (quickstart: 16 x 64)",
         ["data.batch_size=32", "module.num_noisy=32"],
     ),
+    "quickstart_b32_n32_size": (
+        "32 images x 32 noisy poses with the depth from the apparent size (encoder.depth_cue=size_head)",
+        ["data.batch_size=32", "module.num_noisy=32", "encoder.depth_cue=size_head"],
+    ),
+    "quickstart_b32_n32_size_fold": (
+        "the same with the symmetry-folded denoiser (module.symmetry_fold=true: it sees the noisy pose's "
+        "equivalent nearest the anchor)",
+        ["data.batch_size=32", "module.num_noisy=32", "encoder.depth_cue=size_head", "module.symmetry_fold=true"],
+    ),
     "quickstart_render": (
         "rendered on the fly, 8000 poses per shape: no image repeats in 2500 steps (quickstart: 10 000 fixed)",
         ["data.mode=render", "data.n_per_shape_train=8000"],

@@ -23,6 +23,15 @@ condition tensor (``(B, F + n²)``), so samplers, ``modes()``, ``log_likelihood(
 see the same interface. It is trained through the diffusion loss alone (``aux_weight=0``: no
 symmetry labels) or with the symmetry-aware regression loss as an auxiliary term (``aux_weight``).
 A locate-then-crop encoder's locator is trained by regression on the translation (``locate_weight``).
+
+**Symmetry-folded denoiser** (``symmetry_fold=True``, beyond the paper; needs the invariant head,
+whose classifier names the shape): the noisy pose is first moved to its equivalent nearest the anchor,
+``X̃·S*`` with ``S* = argmax_S tr(R̂ᵀR̃·S)`` over the shape's symmetries
+(:func:`~posediff.symmetry.nearest_symmetry`), the network sees ``Log(X̂⁻¹X̃S*)`` and its output is
+carried back to ``X̃`` by ``Ad(S*)``. For a density with ``p(X·S) = p(X)`` the right-trivialised
+score obeys ``s(X·S) = Ad(S)⁻¹ s(X)``, so this is exact — the denoiser models one mode around the
+anchor instead of all 12/24/60 (or a circle of them), and every sample lands on one of the
+equivalent poses by construction. It uses the symmetry labels, as the invariant head does.
 """
 
 import os
@@ -37,7 +46,7 @@ from torch.profiler import record_function
 from .diffusion import Diffusion, Sampler
 from .lie._pose import make_pose
 from .nn.pose_encoder import Encoding
-from .symmetry import SHAPES, set_chordal_sq, symsol_chordal_sq
+from .symmetry import SHAPES, set_chordal_sq, symsol_chordal_sq, symsol_nearest_symmetry
 
 #: the key of the run configuration in the module's hyperparameters (and in its checkpoints)
 CONFIG_HPARAM = "posediff_config"
@@ -74,6 +83,8 @@ class PoseDiffusionModule(L.LightningModule):
             *linear probe* on the detached feature (it never changes the encoder): ``anchor_deg``
             then tells whether the paper's encoder sees orientation.
         locate_weight: weight of the locator's translation regression (locate-then-crop encoders).
+        symmetry_fold: the symmetry-folded denoiser (module docstring); needs ``anchor`` and the
+            invariant rotation head.
         denoiser_lr: the denoiser's own Adam rate (``None``: ``lr``), decayed by the same factor — a
             from-scratch image encoder wants a smaller step than the MLP denoiser (the toys' 1e-3).
         grad_probe_every: every N training steps, log the encoder's gradient norm from the rotation
@@ -103,6 +114,7 @@ class PoseDiffusionModule(L.LightningModule):
         anchor: bool = False,
         aux_weight: float = 0.0,
         locate_weight: float = 1.0,
+        symmetry_fold: bool = False,
         grad_probe_every: int = 0,
         denoiser_lr: float | None = None,
         optimizer_impl: str = "default",
@@ -114,7 +126,7 @@ class PoseDiffusionModule(L.LightningModule):
             raise ValueError(
                 f"unknown optimizer_impl {optimizer_impl!r}; choose one of: {', '.join(self.OPTIMIZER_IMPLS)}"
             )
-        for key, flag in (("channels_last", channels_last), ("compile", compile)):
+        for key, flag in (("channels_last", channels_last), ("compile", compile), ("symmetry_fold", symmetry_fold)):
             if not isinstance(flag, bool):  # bool("abc") is True: a typo would switch the lever on
                 raise ValueError(f"module.{key} must be true or false, got {flag!r}")
         self.optimizer_impl = optimizer_impl
@@ -149,6 +161,14 @@ class PoseDiffusionModule(L.LightningModule):
                 "the invariant rotation head is trained only by the symmetry-aware loss: with module.anchor=true "
                 "set module.aux_weight > 0, or use encoder.rotation_head=6d for an anchor trained by diffusion alone"
             )
+        self.symmetry_fold = symmetry_fold
+        if symmetry_fold and not (
+            self.anchor and getattr(self.encoder, "rotation_head", None) == "invariant"
+        ):
+            raise ValueError(
+                "module.symmetry_fold=true needs module.anchor=true and the invariant head's shape classifier "
+                "(encoder=pose encoder.rotation_head=invariant)"
+            )
         #: whether the encoder places training crops by the target (``forward(image, pose=...)``)
         self._encoder_takes_pose = _takes_pose(self.encoder)
         #: weight of the translation's squared error in :meth:`anchor_loss` (the regression baselines set it)
@@ -157,7 +177,8 @@ class PoseDiffusionModule(L.LightningModule):
             self.encoder.decode_in_training = self.anchor
         n = int(self.group.matrix_dim)
         #: width of the anchor packed behind the feature in the condition (0 without an anchor)
-        self.anchor_width = n * n if self.anchor else 0
+        #: (with ``symmetry_fold`` one more entry: the index in SYMSOL's SHAPES of the classified shape)
+        self.anchor_width = (n * n + int(self.symmetry_fold)) if self.anchor else 0
         #: the training loss of every step (floats), for run summaries; stored in checkpoints
         self.loss_history: list[float] = []
         #: the global RNG states of a checkpoint being resumed, restored in :meth:`on_train_start`
@@ -205,14 +226,23 @@ class PoseDiffusionModule(L.LightningModule):
         """The condition tensor of an encoding: the feature, or ``[feature | anchor entries]``."""
         if not self.anchor:
             return enc.feature
-        return torch.cat([enc.feature, self.anchor_pose(enc).flatten(-2)], dim=-1)
+        parts = [enc.feature, self.anchor_pose(enc).flatten(-2)]
+        if self.symmetry_fold:
+            to_global = torch.tensor([SHAPES.index(x) for x in self.encoder.shapes], device=enc.feature.device)
+            parts.append(to_global[enc.shape_logits.detach().argmax(-1)].to(enc.feature.dtype)[:, None])
+        return torch.cat(parts, dim=-1)
 
     def unpack(self, cond: Tensor) -> tuple[Tensor, Tensor | None]:
         """``(feature, anchor (B, n, n) or None)`` of a condition tensor made by :meth:`pack`."""
         if not self.anchor:
             return cond, None
         n = int(self.group.matrix_dim)
-        return cond[..., : -self.anchor_width], cond[..., -self.anchor_width :].unflatten(-1, (n, n))
+        anchor = cond[..., -self.anchor_width :][..., : n * n].unflatten(-1, (n, n))
+        return cond[..., : -self.anchor_width], anchor
+
+    def folded_shapes(self, cond: Tensor) -> Tensor:
+        """The shape indices (into SYMSOL's SHAPES) packed in a ``symmetry_fold`` condition, ``(B,)``."""
+        return cond[..., -1].round().long()
 
     @staticmethod
     def pose_input_dim(group: Any, pose_input: str) -> int:
@@ -233,11 +263,17 @@ class PoseDiffusionModule(L.LightningModule):
         """Raw network output at noisy poses ``x_noisy (B, N, n, n)`` with levels ``sigma (B, N)``;
         ``feature`` is the condition of :meth:`encode` (with the anchor when ``anchor`` is on)."""
         level = self.diffusion.schedule.level(sigma)
-        feature, anchor = self.unpack(feature)
-        if anchor is not None:
-            g = self.group
-            x_noisy = g.compose(g.inverse(anchor).unsqueeze(-3), x_noisy)
-        return self.denoiser(self.pose_features(x_noisy), level, feature)
+        feature, anchor = self.unpack(cond := feature)
+        if anchor is None:
+            return self.denoiser(self.pose_features(x_noisy), level, feature)
+        g = self.group
+        x_rel = g.compose(g.inverse(anchor).unsqueeze(-3), x_noisy)
+        if not self.symmetry_fold:
+            return self.denoiser(self.pose_features(x_rel), level, feature)
+        S = symsol_nearest_symmetry(self.folded_shapes(cond), x_rel[..., :3, :3].detach())
+        fold = S if int(g.matrix_dim) == 3 else make_pose(S, S.new_zeros(*S.shape[:-2], 3))
+        out = self.denoiser(self.pose_features(g.compose(x_rel, fold)), level, feature)
+        return (g.adjoint(fold) @ out.unsqueeze(-1)).squeeze(-1)
 
     def denoise_fn(self) -> Callable[[Tensor, Tensor, Tensor], Tensor]:
         """The ``denoise_fn(x, sigma, feature)`` the samplers call."""

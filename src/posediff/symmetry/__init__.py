@@ -16,6 +16,7 @@ from .groups import (
     invariant_embedding,
     is_continuous,
     min_angle_to_equivalents,
+    nearest_symmetry,
     num_modes,
     rotation_angle,
     set_chordal_sq,
@@ -24,6 +25,7 @@ from .groups import (
     symmetric_chordal_sq,
     symmetry_group,
     symsol_chordal_sq,
+    symsol_nearest_symmetry,
     unstandardise_embedding,
 )
 from .sets import SymmetrySet, as_symmetry_set, min_angle_deg
@@ -46,6 +48,7 @@ __all__ = [
     "is_continuous",
     "min_angle_deg",
     "min_angle_to_equivalents",
+    "nearest_symmetry",
     "num_modes",
     "rotation_angle",
     "set_chordal_sq",
@@ -53,4 +56,5 @@ __all__ = [
     "symmetric_chordal_sq",
     "symmetry_group",
     "symsol_chordal_sq",
+    "symsol_nearest_symmetry",
 ]

@@ -206,29 +206,46 @@ def rotation_angle(Q: Tensor) -> Tensor:
     return torch.atan2(s, c)
 
 
-def _best_about_z(M: Tensor) -> tuple[Tensor, Tensor]:
-    """``M·Rz(α*)`` with α* maximising ``tr(M·Rz(α)) = (M00 + M11) cos α + (M01 − M10) sin α + M22``,
-    and that maximal trace."""
+def nearest_symmetry(shape: str, M: Tensor) -> Tensor:
+    """The symmetry ``S`` of ``shape`` for which ``M·S`` is closest to the identity (largest trace),
+    ``(…, 3, 3)`` for ``(…, 3, 3)`` matrices ``M``: with ``M = R̂ᵀR``, ``R·S`` is the equivalent of
+    the pose ``R`` nearest to ``R̂``. Exact for every shape: argmax over the group for the polyhedra,
+    closed form for cone (``Rz(α*)``) and cylinder (the better of ``Rz(α*)`` and ``Rx(π)·Rz(α*′)``)."""
+    _check_shape(shape)
+    if not is_continuous(shape):
+        G = symmetry_group(shape, dtype=M.dtype, device=M.device)
+        traces = torch.einsum("...ij,sji->...s", M, G)
+        return G[traces.argmax(-1)]
     a = M[..., 0, 0] + M[..., 1, 1]
     b = M[..., 0, 1] - M[..., 1, 0]
-    alpha = torch.atan2(b, a)
-    trace = torch.sqrt(a * a + b * b) + M[..., 2, 2]
-    return M @ _rz(alpha), trace
+    S = _rz(torch.atan2(b, a))
+    if shape == "cone":
+        return S
+    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=M.dtype, device=M.device))
+    # tr(M·Rx(π)·Rz(α)): the same closed form on M·Rx(π)
+    a_f = M[..., 0, 0] - M[..., 1, 1]
+    b_f = -M[..., 0, 1] - M[..., 1, 0]
+    S_f = flip @ _rz(torch.atan2(b_f, a_f))
+    better = torch.sqrt(a_f * a_f + b_f * b_f) - M[..., 2, 2] > torch.sqrt(a * a + b * b) + M[..., 2, 2]
+    return torch.where(better[..., None, None], S_f, S)
+
+
+def symsol_nearest_symmetry(shape_ids: Tensor, M: Tensor) -> Tensor:
+    """:func:`nearest_symmetry` for a batch of mixed shapes: ``shape_ids (B,)`` indices into
+    :data:`SHAPES`, ``M (B, [N,] 3, 3)`` → ``S`` of the same shape as ``M``. Every shape's answer is
+    computed for every input and the right one selected, so the function has no data-dependent
+    control flow (``torch.export`` can trace it)."""
+    ids = shape_ids.reshape(shape_ids.shape + (1,) * (M.dim() - shape_ids.dim()))
+    out = torch.zeros_like(M)
+    for k, name in enumerate(SHAPES):
+        out = torch.where(ids == k, nearest_symmetry(name, M), out)
+    return out
 
 
 def _closest_equivalent(shape: str, M: Tensor) -> Tensor:
     """The element of ``{M·S : S in the group}`` with the largest trace (closest to the identity);
     exact (closed form) for the continuous groups."""
-    if not is_continuous(shape):
-        G = symmetry_group(shape, dtype=M.dtype, device=M.device)
-        traces = torch.einsum("...ij,sji->...s", M, G)
-        return M @ G[traces.argmax(-1)]
-    best, trace = _best_about_z(M)
-    if shape == "cone":
-        return best
-    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=M.dtype, device=M.device))
-    best_f, trace_f = _best_about_z(M @ flip)
-    return torch.where((trace_f > trace)[..., None, None], best_f, best)
+    return M @ nearest_symmetry(shape, M)
 
 
 def canonical_rotation(shape: str, R: Tensor) -> Tensor:
@@ -262,7 +279,7 @@ def min_angle_to_equivalents(shape: str, R_est: Tensor, R_gt: Tensor) -> Tensor:
 # ----------------------------------------------------------------------------- symmetry-aware losses
 def _max_trace(shape: str, M: Tensor) -> Tensor:
     """``max_S tr(M·S)`` over the group of ``shape`` for ``(…, 3, 3)`` matrices ``M``; closed form for
-    the continuous groups (``tr(M·Rz(α))`` peaks at ``√(a² + b²) + M22``, :func:`_best_about_z`),
+    the continuous groups (``tr(M·Rz(α))`` peaks at ``√(a² + b²) + M22``, :func:`nearest_symmetry`),
     written with a safe square root so that its gradient is finite where ``a = b = 0``."""
     if not is_continuous(shape):
         G = symmetry_group(shape, dtype=M.dtype, device=M.device)
