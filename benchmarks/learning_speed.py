@@ -106,7 +106,12 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "quickstart_b32_n32_size_fold": (
         "the same with the symmetry-folded denoiser (module.symmetry_fold=true: it sees the noisy pose's "
         "equivalent nearest the anchor)",
-        ["data.batch_size=32", "module.num_noisy=32", "encoder.depth_cue=size_head", "module.symmetry_fold=true"],
+        [
+            "data.batch_size=32",
+            "module.num_noisy=32",
+            "encoder.depth_cue=size_head",
+            "module.symmetry_fold=true",
+        ],
     ),
     "quickstart_render": (
         "rendered on the fly, 8000 poses per shape: no image repeats in 2500 steps (quickstart: 10 000 fixed)",

@@ -104,7 +104,11 @@ def test_folded_score_is_equivariant(group: str, shape: str) -> None:
     x = g.sample_uniform((2, 6), generator=gen)
     sigma = torch.full((2, 6), 0.3)
     out = m(x, sigma, cond)
-    syms = symmetry_group(shape, dtype=torch.float32)[1:4] if shape != "cyl" else torch.stack([_rz(0.7), torch.diag(torch.tensor([1.0, -1, -1])) @ _rz(2.1)])
+    syms = (
+        symmetry_group(shape, dtype=torch.float32)[1:4]
+        if shape != "cyl"
+        else torch.stack([_rz(0.7), torch.diag(torch.tensor([1.0, -1, -1])) @ _rz(2.1)])
+    )
     for S in syms:
         Sx = S if g.matrix_dim == 3 else make_pose(S, torch.zeros(3))
         moved = m(g.compose(x, Sx.expand_as(x)), sigma, cond)

@@ -126,7 +126,11 @@ class PoseDiffusionModule(L.LightningModule):
             raise ValueError(
                 f"unknown optimizer_impl {optimizer_impl!r}; choose one of: {', '.join(self.OPTIMIZER_IMPLS)}"
             )
-        for key, flag in (("channels_last", channels_last), ("compile", compile), ("symmetry_fold", symmetry_fold)):
+        for key, flag in (
+            ("channels_last", channels_last),
+            ("compile", compile),
+            ("symmetry_fold", symmetry_fold),
+        ):
             if not isinstance(flag, bool):  # bool("abc") is True: a typo would switch the lever on
                 raise ValueError(f"module.{key} must be true or false, got {flag!r}")
         self.optimizer_impl = optimizer_impl
@@ -228,7 +232,9 @@ class PoseDiffusionModule(L.LightningModule):
             return enc.feature
         parts = [enc.feature, self.anchor_pose(enc).flatten(-2)]
         if self.symmetry_fold:
-            to_global = torch.tensor([SHAPES.index(x) for x in self.encoder.shapes], device=enc.feature.device)
+            to_global = torch.tensor(
+                [SHAPES.index(x) for x in self.encoder.shapes], device=enc.feature.device
+            )
             parts.append(to_global[enc.shape_logits.detach().argmax(-1)].to(enc.feature.dtype)[:, None])
         return torch.cat(parts, dim=-1)
 
