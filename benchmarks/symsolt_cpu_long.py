@@ -56,8 +56,10 @@ RUNS: dict[str, list[str]] = {
     "r3so3": ["group=r3so3"],
     "se3": ["group=se3"],
     "regression": ["module._target_=posediff.regression.PoseRegressionModule", "module.denoiser=null"],
+    # the demo's recipe since issue 27's symmetry-fold study: 32 images x 32 noisy poses, the folded denoiser
+    "r3so3_fold": ["group=r3so3", "data.batch_size=32", "module.num_noisy=32", "module.symmetry_fold=true"],
 }
-STYLES = {"r3so3": "-", "se3": "--", "regression": "-."}
+STYLES = {"r3so3": "-", "se3": "--", "regression": "-.", "r3so3_fold": ":"}
 
 
 def command(name: str, run: Path, max_steps: int) -> list[str]:
@@ -65,15 +67,15 @@ def command(name: str, run: Path, max_steps: int) -> list[str]:
             "trainer.enable_progress_bar=false", f"hydra.run.dir={run}"]  # fmt: skip
 
 
-def train(groups: list[str], out: Path, max_steps: int) -> dict[str, Path]:
-    """The runs at once, one CPU thread each (``OMP_NUM_THREADS=1``); returns group → run folder."""
+def train(groups: list[str], out: Path, max_steps: int, threads: int = 1) -> dict[str, Path]:
+    """The runs at once, ``threads`` CPU threads each (``OMP_NUM_THREADS``); returns group → run folder."""
     out.mkdir(parents=True, exist_ok=True)
     procs = {}
     for g in groups:
         run = out / g
         cmd = [sys.executable, "-m", "posediff.cli", *command(g, run, max_steps)[1:]]
         log = (out / f"{g}.log").open("w")
-        procs[g] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "OMP_NUM_THREADS": "1"}), log)  # fmt: skip
+        procs[g] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "OMP_NUM_THREADS": str(threads)}), log)  # fmt: skip
     while any(p.poll() is None for p, _ in procs.values()):
         time.sleep(60)
         collect({g: out / g for g in groups}, max_steps)
@@ -106,6 +108,11 @@ def collect(runs: dict[str, Path], max_steps: int | None = None) -> dict[str, An
 
     result: dict[str, Any] = {"machine": _machine(), "targets": {"spread_deg": TARGET_SPREAD_DEG,
                               "translation_error": TARGET_TRANSLATION}, "paper_table2": PAPER, "groups": {}}  # fmt: skip
+    # runs collected before whose folders are not here (another machine, a fresh clone) are kept
+    previous = RESULTS / "symsolt_cpu_long.json"
+    if previous.is_file():
+        kept = json.loads(previous.read_text()).get("groups", {})
+        result["groups"].update({g: res for g, res in kept.items() if g not in runs})
     for g, run in runs.items():
         path = Path(run) / "test_curve.json"
         if not path.is_file():
@@ -224,7 +231,8 @@ def plot(result: dict[str, Any]) -> None:
         ax_t.grid(alpha=0.3, which="both")
     axes[0, 0].legend(fontsize=6, ncol=2)
     axes[1, 0].legend(fontsize=7)
-    fig.suptitle("posediff on SYMSOL-T, 2-core CPU (solid R³×SO(3), dashed SE(3), dash-dot regression; dotted: paper SE(3), Table 2)",
+    fig.suptitle("posediff on SYMSOL-T, 2-core CPU (solid R³×SO(3), dashed SE(3), dash-dot regression, dotted R³×SO(3) "
+                 "folded; thin dotted: paper SE(3), Table 2)",
                  fontsize=10)  # fmt: skip
     fig.tight_layout()
     import io
@@ -247,9 +255,10 @@ def main() -> None:
         "--max-steps", type=int, default=None, help="trainer.max_steps (default: the experiment's)"
     )
     ap.add_argument("--runs", nargs="*", default=[], help="group=run_folder pairs to collect")
+    ap.add_argument("--threads", type=int, default=1, help="CPU threads per run (default 1)")
     args = ap.parse_args()
     if args.train:
-        runs = train(args.groups, args.out, args.max_steps or 50000)
+        runs = train(args.groups, args.out, args.max_steps or 50000, args.threads)
     else:
         runs = {k: Path(v) for k, v in (a.split("=", 1) for a in args.runs)} or {
             g: args.out / g for g in args.groups if (args.out / g).is_dir()
