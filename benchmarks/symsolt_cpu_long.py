@@ -50,14 +50,21 @@ PAPER_STEPS = {"regression": "400k", "iterative regression": "800k", "r3so3": "8
 TARGET_SPREAD_DEG, TARGET_TRANSLATION = 2.0, 0.03
 
 
-#: run name → its overrides of ``+experiment=symsolt_cpu_long``: the two diffusion models of Table 2 and
-#: the regression baseline at the same budget (R³×SO(3) data, the same encoder, no denoiser)
+#: the recipe of the first long runs (quickstart before the symmetry-fold study: 16 images x 64 noisy poses,
+#: unfolded); pinned so that their rows can be made again with today's experiment
+BEFORE_FOLD = ["data.batch_size=16", "module.num_noisy=64", "module.symmetry_fold=false"]
+#: run name → its overrides of ``+experiment=symsolt_cpu_long``: the two diffusion models of Table 2, the
+#: regression baseline at the same budget (R³×SO(3) data, the same encoder, no denoiser), today's recipe
 RUNS: dict[str, list[str]] = {
-    "r3so3": ["group=r3so3"],
-    "se3": ["group=se3"],
-    "regression": ["module._target_=posediff.regression.PoseRegressionModule", "module.denoiser=null"],
-    # the demo's recipe since issue 27's symmetry-fold study: 32 images x 32 noisy poses, the folded denoiser
-    "r3so3_fold": ["group=r3so3", "data.batch_size=32", "module.num_noisy=32", "module.symmetry_fold=true"],
+    "r3so3": ["group=r3so3", *BEFORE_FOLD],
+    "se3": ["group=se3", *BEFORE_FOLD],
+    "regression": [
+        "module._target_=posediff.regression.PoseRegressionModule",
+        "module.denoiser=null",
+        *BEFORE_FOLD,
+    ],
+    # the quickstart now (32 images x 32 noisy poses, the symmetry-folded denoiser)
+    "r3so3_fold": ["group=r3so3"],
 }
 STYLES = {"r3so3": "-", "se3": "--", "regression": "-.", "r3so3_fold": ":"}
 

@@ -41,7 +41,7 @@ BOP = ["+experiment=tless_se3", "encoder.arch=resnet18", "encoder.out_dim=16", "
        "eval.before=false", "eval.num_steps=[2]", "eval.num_samples=1"]  # fmt: skip
 SYMSOL = ["+experiment=quickstart", "data.image_size=32", "data.shapes=[tet,cube]", "data.batch_size=2",
           "data.n_per_shape_test=1", "module.num_noisy=4", "denoiser.hidden_dim=16", "encoder.out_dim=16",
-          "encoder.crop_size=null", "trainer.max_steps=2", "trainer.enable_progress_bar=false",
+          "encoder.crop_size=null", "encoder.depth_cue=null", "trainer.max_steps=2", "trainer.enable_progress_bar=false",
           "eval.before=false", "eval.num_samples=1", "eval.num_steps=[2]"]  # fmt: skip
 RENDER = ["data", "render", "dataset=symsolt", "image_size=32", "n_per_shape=2", "shapes=[tet,cube]",
           "shard_size=2", "progress=false"]  # fmt: skip

@@ -32,7 +32,14 @@ SMALL = [
     "trainer.log_every_n_steps=1",
 ]
 REGRESSION = ["encoder=pose", "module._target_=posediff.regression.PoseRegressionModule"]
-PAPER = ["encoder.crop_size=null", "encoder.rotation_head=6d", "module.anchor=false", "module.aux_weight=0.0"]
+PAPER = [
+    "encoder.crop_size=null",
+    "encoder.depth_cue=null",
+    "encoder.rotation_head=6d",
+    "module.anchor=false",
+    "module.aux_weight=0.0",
+    "module.symmetry_fold=false",
+]
 MODELS = {
     "paper": PAPER,
     "quickstart": ["encoder.crop_size=32"],
@@ -47,6 +54,7 @@ MODELS = {
         *REGRESSION,
         "+module.iterations=2",
         "encoder.crop_size=null",
+        "encoder.depth_cue=null",
         "encoder.rotation_head=6d",
     ],
 }

@@ -171,7 +171,7 @@ class PoseDiffusionModule(L.LightningModule):
         ):
             raise ValueError(
                 "module.symmetry_fold=true needs module.anchor=true and the invariant head's shape classifier "
-                "(encoder=pose encoder.rotation_head=invariant)"
+                "(encoder=pose encoder.rotation_head=invariant); otherwise set module.symmetry_fold=false"
             )
         #: whether the encoder places training crops by the target (``forward(image, pose=...)``)
         self._encoder_takes_pose = _takes_pose(self.encoder)

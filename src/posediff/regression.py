@@ -64,6 +64,7 @@ class PoseRegressionModule(PoseDiffusionModule):
             )
         kwargs["anchor"] = False
         kwargs["aux_weight"] = 0.0
+        kwargs["symmetry_fold"] = False  # no denoiser to fold
         if sampler is None:
             from .diffusion import FewStepSampler
 

@@ -38,7 +38,7 @@ VARIANTS = {
     "anchored_aux": [*ANCHOR, "module.aux_weight=1.0"],
     "anchored_aux_crop": [*ANCHOR, "module.aux_weight=1.0", "encoder.crop_size=32"],
     "anchored_r3so3": [*ANCHOR, "group=r3so3"],
-    "anchored_so3": [*ANCHOR, "group=so3", "encoder.crop_size=null"],
+    "anchored_so3": [*ANCHOR, "group=so3", "encoder.crop_size=null", "encoder.depth_cue=null"],
     "regression": REGRESSION,
     "regression_crop": [*REGRESSION, "encoder.crop_size=32"],
     "iterative_regression": ITERATIVE,

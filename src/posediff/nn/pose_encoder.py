@@ -248,7 +248,9 @@ class PoseEncoder(nn.Module):
         if depth_cue not in DEPTH_CUES:
             raise ValueError(f"unknown depth_cue {depth_cue!r}; choose one of: null, size, size_head")
         if depth_cue is not None and crop_size is None:
-            raise ValueError(f"depth_cue={depth_cue} needs locate-then-crop (crop_size set)")
+            raise ValueError(
+                f"depth_cue={depth_cue} needs locate-then-crop (crop_size set); without a crop set encoder.depth_cue=null"
+            )
         if not 0.0 < float(background_level) < 1.0:
             raise ValueError(f"background_level must be in (0, 1), got {background_level}")
         self.depth_cue, self.background_level = depth_cue, float(background_level)
