@@ -192,7 +192,7 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
         results["before"] = evaluate_data(
             module,
             datamodule,
-            num_samples=int(cfg.eval.num_samples),
+            num_samples=int(cfg.eval.get("before_num_samples") or cfg.eval.num_samples),
             num_steps=int(max(cfg.eval.num_steps)),
             seed=int(cfg.eval.seed),
         )
