@@ -157,7 +157,7 @@ def markdown(result: dict[str, Any]) -> str:
         "# SYMSOL-T, the long CPU run (issue 27)",
         "",
         "`python benchmarks/symsolt_cpu_long.py --train` — `posediff fit +experiment=symsolt_cpu_long` per run (each",
-        "run's command is in the JSON), two at a time, one CPU thread each, on "
+        "run's command is in the JSON), two at a time, one CPU thread each (r3so3_fold: alone, `--threads 2`), on "
         + result["machine"]
         + ". Whole test split (200 images per",
         "shape), one hypothesis per image, 100 steps of the few-step sampler; coverage on 20 images per shape",
