@@ -34,7 +34,7 @@ test: ## the default test suite (not slow, not gpu)
 test-all: ## every test, slow ones included
 	$(PY) -m pytest -q -m "not gpu"
 
-demo: ## render a small SYMSOL-T, train `quickstart` on the CPU, evaluate, predict (≈15 min on 2 cores; outputs/demo/; progress in outputs/demo.partial/fit/progress.log)
+demo: ## render a small SYMSOL-T, train `quickstart` on the CPU, evaluate, predict (≈16 min on 2 cores; outputs/demo/; progress in outputs/demo.partial/fit/progress.log)
 	$(VENV)/bin/posediff demo trainer.enable_progress_bar=false
 
 walkthrough: ## the Lie group walk-through (notebooks/01) in full mode; figures in outputs/walkthrough/
