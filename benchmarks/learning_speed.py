@@ -122,6 +122,16 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
             "module.symmetry_fold=true",
         ],
     ),
+    "quickstart_se3_fold": (
+        "the quickstart now (32 x 32, size_head, folded) on SE(3)",
+        [
+            "data.batch_size=32",
+            "module.num_noisy=32",
+            "encoder.depth_cue=size_head",
+            "module.symmetry_fold=true",
+            "group=se3",
+        ],  # fmt: skip
+    ),
     "quickstart_render": (
         "rendered on the fly, 8000 poses per shape: no image repeats in 2500 steps (quickstart: 10 000 fixed)",
         ["data.mode=render", "data.n_per_shape_train=8000"],
