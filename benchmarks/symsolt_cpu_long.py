@@ -65,8 +65,10 @@ RUNS: dict[str, list[str]] = {
     ],
     # the quickstart now (32 images x 32 noisy poses, the symmetry-folded denoiser)
     "r3so3_fold": ["group=r3so3"],
+    # the same recipe, its learning rate decayed over a longer budget (--max-steps 17500)
+    "r3so3_fold_long": ["group=r3so3"],
 }
-STYLES = {"r3so3": "-", "se3": "--", "regression": "-.", "r3so3_fold": ":"}
+STYLES = {"r3so3": "-", "se3": "--", "regression": "-.", "r3so3_fold": ":", "r3so3_fold_long": (0, (1, 3))}
 
 
 def command(name: str, run: Path, max_steps: int) -> list[str]:
@@ -218,9 +220,9 @@ def plot(result: dict[str, Any]) -> None:
             rows = res["rows"]
             x = [r[xkey] for r in rows]
             for s in SHAPES:
-                ax_r.plot(x, [r["spread_deg"][s] for r in rows], STYLES.get(g, ":"), color=colours[s], marker="o",
+                ax_r.plot(x, [r["spread_deg"][s] for r in rows], linestyle=STYLES.get(g, ":"), color=colours[s], marker="o",
                           ms=3, label=f"{g} {s}")  # fmt: skip
-            ax_t.plot(x, [r["overall_translation_error"] for r in rows], STYLES.get(g, ":"), color="k", marker="o",
+            ax_t.plot(x, [r["overall_translation_error"] for r in rows], linestyle=STYLES.get(g, ":"), color="k", marker="o",
                       ms=3, label=f"{g}")  # fmt: skip
         for s in SHAPES:
             ax_r.axhline(PAPER["se3"][s][0], color=colours[s], lw=0.8, ls=":")
