@@ -58,6 +58,8 @@ BUILDABLE: frozenset[str] = frozenset(
         "posediff.data.SymmetryToyDataModule",
         "posediff.data.symsol.SymsolDataModule",
         "posediff.data.bop.BopDataModule",
+        "posediff.data.official.SymsolOfficialDataModule",
+        "posediff.data.official.SymsoltOfficialDataModule",
         "posediff.data.bop.augment.HardAugment",
     }
 )

@@ -39,7 +39,9 @@ from .shapes import evaluate
 
 def _score_shapes(module: Any, datamodule: Any, **kwargs: Any) -> dict[str, Any]:
     kwargs.pop("vsd", None)  # a BOP option
-    return evaluate(module, datamodule.test_dataloader(), list(getattr(datamodule, "shapes", [])), **kwargs)
+    sets = getattr(datamodule, "symmetry_sets", None)  # the official SYMSOL files' own equivalents
+    return evaluate(module, datamodule.test_dataloader(), list(getattr(datamodule, "shapes", [])),
+                    symmetry_sets=sets, **kwargs)  # fmt: skip
 
 
 def _score_bop(module: Any, datamodule: Any, **kwargs: Any) -> dict[str, Any]:

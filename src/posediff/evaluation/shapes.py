@@ -17,7 +17,7 @@ The result after the last step is what is reported — never the best step along
 """
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
@@ -26,7 +26,7 @@ from torch.utils.data import DataLoader
 from ..diffusion import Sampler
 from ..metrics import mode_coverage, recall, rotation_errors_deg, translation_errors
 from ..module import PoseDiffusionModule
-from ..symmetry import SHAPES
+from ..symmetry import SHAPES, SYMSOL_LABELS, SymmetrySet, is_continuous
 from .sampling import SampledBatches
 
 #: recall thresholds (paper's SYMSOL-T evaluation: degrees, and scene units)
@@ -48,10 +48,12 @@ def evaluate(
     rotation_thresholds_deg: Sequence[float] = ROTATION_THRESHOLDS_DEG,
     translation_thresholds: Sequence[float] = TRANSLATION_THRESHOLDS,
     max_inputs: int | None = None,
+    symmetry_sets: Mapping[str, SymmetrySet] | None = None,
 ) -> dict[str, Any]:
     """Per-shape and overall metrics of ``num_samples`` hypotheses per test input (at most
-    ``max_inputs`` inputs). Batches carry ``shape``, the index in ``posediff.symmetry.SHAPES``;
-    ``shapes`` orders the per-shape rows."""
+    ``max_inputs`` inputs). Batches carry ``shape``, the index in ``posediff.symmetry.SYMSOL_LABELS``
+    (SYMSOL I's five first); ``shapes`` orders the per-shape rows. ``symmetry_sets``: a shape's
+    equivalents as its data gives them (the official SYMSOL files), else posediff's exact groups."""
     was_training = module.training
     module.eval()
     try:
@@ -67,6 +69,7 @@ def evaluate(
             tuple(rotation_thresholds_deg),
             tuple(translation_thresholds),
             max_inputs,
+            dict(symmetry_sets or {}),
         )
     finally:
         module.train(was_training)
@@ -84,6 +87,7 @@ def _evaluate(
     rotation_thresholds_deg: Sequence[float],
     translation_thresholds: Sequence[float],
     max_inputs: int | None,
+    symmetry_sets: dict[str, SymmetrySet],
 ) -> dict[str, Any]:
     per_shape: dict[str, dict[str, list[torch.Tensor]]] = {}
     has_t = module.group.matrix_dim == 4
@@ -91,12 +95,15 @@ def _evaluate(
     for batch, x in run:
         rot = x[..., :3, :3].double()
         for k in batch["shape"].unique().tolist():
-            shape = SHAPES[k]
+            shape = SYMSOL_LABELS[k]
+            sym = symmetry_sets.get(shape, shape)
             sel = batch["shape"] == k
             acc = per_shape.setdefault(shape, {"rot": [], "trans": [], "coverage": []})
             r_gt = batch["rotation"][sel].double()
-            acc["rot"].append(rotation_errors_deg(shape, rot[sel], r_gt).cpu())
-            acc["coverage"].append(mode_coverage(shape, rot[sel], r_gt, coverage_threshold_deg).cpu())
+            acc["rot"].append(rotation_errors_deg(sym, rot[sel], r_gt).cpu())
+            # a continuous symmetry has no finite modes, whatever grid a file lists it on
+            cov_sym = shape if shape in SHAPES and is_continuous(shape) else sym
+            acc["coverage"].append(mode_coverage(cov_sym, rot[sel], r_gt, coverage_threshold_deg).cpu())
             if has_t:
                 t_s, t_gt = x[sel][..., :3, 3].double(), batch["translation"][sel].double()
                 acc["trans"].append(translation_errors(t_s, t_gt).cpu())

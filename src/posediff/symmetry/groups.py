@@ -49,6 +49,12 @@ from ..lie.so3 import unskew
 
 SHAPES: tuple[str, ...] = ("tet", "cube", "icosa", "cone", "cyl")
 
+#: the shape labels of the official SYMSOL files (TensorFlow Datasets ``symmetric_solids``, in its
+#: order): SYMSOL I = :data:`SHAPES`, then SYMSOL II's marked shapes, whose symmetries depend on
+#: whether the mark is visible (the files give the rendering rotation alone). A batch's ``shape`` is
+#: an index into this tuple (the first five are :data:`SHAPES`).
+SYMSOL_LABELS: tuple[str, ...] = (*SHAPES, "tetX", "cylO", "sphereX")
+
 _NUM_MODES: dict[str, int | None] = {"tet": 12, "cube": 24, "icosa": 60, "cone": None, "cyl": None}
 
 GOLDEN_RATIO = (1.0 + math.sqrt(5.0)) / 2.0
@@ -460,6 +466,7 @@ def _search_directions() -> Tensor:
 
 __all__ = [
     "SHAPES",
+    "SYMSOL_LABELS",
     "GENERATORS_DOC",
     "GOLDEN_RATIO",
     "is_continuous",

@@ -170,7 +170,9 @@ class SymmetrySet:
             R_est, R_gt = torch.as_tensor(R_est), torch.as_tensor(R_gt)
             if self.shape is not None:
                 return torch.rad2deg(min_angle_to_equivalents(self.shape, R_est, R_gt))
-            G = torch.from_numpy(self.rotations(max_sym_disc_step=max_sym_disc_step)).to(R_est)
+            G = torch.from_numpy(np.array(self.rotations(max_sym_disc_step=max_sym_disc_step))).to(
+                R_est
+            )  # a copy: cached arrays are read-only
             if R_est.dim() == R_gt.dim() + 1:
                 R_gt = R_gt.unsqueeze(-3)
             M = R_gt.mT @ R_est  # angle(R_gt S, R_est) = angle(Sᵀ M); tr(Sᵀ M) = Σ S ⊙ M

@@ -1,0 +1,483 @@
+"""The official SYMSOL I / II files (Implicit-PDF, Murphy et al. 2021), read as posediff's SYMSOL.
+
+Two layouts of the same data (``data=symsol_official``, ``data.root=`` either):
+
+* **the unpacked ``symsol_dataset.zip``**: ``<root>/<split>/images/<shape>_<index>.png`` (224×224 RGB)
+  and ``<root>/<split>/rotations.npz`` holding, per shape name, ``(N, K, 3, 3)``: ``[i, 0]`` the
+  rendering rotation of image ``i`` and ``[i, :]`` its known equivalent rotations (12 / 24 / 60 for
+  the polyhedra, the continuous symmetry at 1° for cone and cylinder, the rendering rotation alone
+  for SYMSOL II's marked shapes);
+* **a prepared TensorFlow Datasets folder** ``tensorflow_datasets/symmetric_solids/<version>``
+  (``dataset_info.json`` and ``symmetric_solids-<split>.tfrecord-NNNNN-of-NNNNN`` shards), read without
+  TensorFlow (:mod:`.tfrecord`): features ``image`` (PNG), ``label_shape`` (the index in
+  :data:`~posediff.symmetry.SYMSOL_LABELS`), ``rotation`` (9 floats) and ``rotations_equivalent``
+  (K × 9 floats).
+
+Batches have the keys of posediff's own rotation-only SYMSOL (``image`` (3, H, W) in [0, 1],
+``pose`` = ``rotation`` (3, 3), ``translation`` zeros, ``shape`` the index in ``SYMSOL_LABELS``,
+``index``) plus ``symmetries`` / ``symmetries_mask``: the file's equivalents as object-frame
+symmetries ``S_k = R_0ᵀ R_k`` (posediff's right action, ``docs/conventions.md``), padded to the largest
+set, which the symmetry-aware losses use; :attr:`SymsolOfficialDataModule.symmetry_sets` holds the
+same sets per shape for the scorer, so spread and coverage are measured against the file's
+equivalents (the cone's and cylinder's at the file's 1° step). :meth:`~SymsolOfficialDataModule.symmetry_agreement`
+compares them with :mod:`posediff.symmetry`'s exact groups for SYMSOL I.
+
+Validation holds out the last ``val_fraction`` of each shape's training images (index order), which
+training skips; the test split is never read in training.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import zipfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from ...lie import LieGroup, get_group
+from ...symmetry import SHAPES, SYMSOL_LABELS, SymmetrySet
+from ..protocol import LoaderPredictions
+from ..resumable import ResumableDataLoader, eval_loader
+from .tfrecord import TFRecordError, TFRecordFile, parse_example
+
+SPLITS = ("train", "test")
+_TFDS_NAME = "symmetric_solids"
+_IMAGE = re.compile(r"^(?P<shape>[A-Za-z]+)_(?P<index>\d+)\.png$")
+
+
+class OfficialDataError(ValueError):
+    """An official dataset folder or file posediff cannot read (one line naming it)."""
+
+
+# ----------------------------------------------------------------------------- images
+def decode_png(data: bytes | Path, size: int | None, where: str) -> torch.Tensor:
+    """A PNG (bytes or a file) as ``(3, size, size)`` float32 in [0, 1] (resized with antialiasing
+    when ``size`` differs; ``None``: as stored); a damaged or truncated file → one line naming it."""
+    import io
+
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(io.BytesIO(data) if isinstance(data, bytes) else data) as im:
+            im.load()
+            rgb = im.convert("RGB")
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as e:
+        raise OfficialDataError(f"{where}: not a readable image ({e})") from None
+    if size is not None and rgb.size != (size, size):
+        rgb = rgb.resize((size, size), Image.Resampling.BILINEAR, reducing_gap=None)
+    arr = np.asarray(rgb, dtype=np.uint8)
+    return torch.from_numpy(np.ascontiguousarray(arr.transpose(2, 0, 1))).float().div_(255.0)
+
+
+# ----------------------------------------------------------------------------- records
+@dataclass(frozen=True)
+class _Split:
+    """One split's records: ``label`` (N,) index in SYMSOL_LABELS, ``rotation`` (N, 3, 3) float32, and
+    how to fetch image ``i`` (``files[i]`` a path, or ``(shard, record)`` pairs into ``shards``)."""
+
+    label: np.ndarray
+    rotation: np.ndarray
+    files: list[Path] | None
+    shards: list[TFRecordFile] | None
+    where: np.ndarray | None  # (N, 2) shard, record
+    symmetries: dict[str, np.ndarray]  # shape → (K, 3, 3) object-frame symmetries (identity first)
+    source: str
+
+    def __len__(self) -> int:
+        return len(self.label)
+
+
+def _symmetries_of(equivalents: np.ndarray, where: str, check: int = 8) -> np.ndarray:
+    """The object-frame set ``R_0ᵀ R_k`` of a shape's ``(N, K, 3, 3)`` equivalents (from image 0),
+    checked to be the same set for the first ``check`` images (else the file's equivalents are not a
+    right action of one group: refused)."""
+    eq = np.asarray(equivalents, dtype=np.float64)
+    S = np.einsum("kji,kjl->kil", np.broadcast_to(eq[0, :1], eq[0].shape), eq[0])
+    for i in range(1, min(check, len(eq))):
+        Si = np.einsum("kji,kjl->kil", np.broadcast_to(eq[i, :1], eq[i].shape), eq[i])
+        # each member of image i's set within 0.1° of one of image 0's (tr(AᵀB) ≥ 1 + 2cos 0.1°)
+        tr = np.einsum("aij,bij->ab", Si, S)
+        if tr.max(1).min() < 1.0 + 2.0 * np.cos(np.radians(0.1)):
+            raise OfficialDataError(
+                f"{where}: the equivalent rotations of image {i} are not image 0's symmetry set "
+                "(expected [i, k] = [i, 0]·S_k for one set S)"
+            )
+    return S.astype(np.float32)
+
+
+def _read_npz(path: Path, shapes: Sequence[str]) -> dict[str, np.ndarray]:
+    if not path.is_file():
+        raise OfficialDataError(
+            f"{path}: missing (the unpacked symsol_dataset.zip has <split>/rotations.npz)"
+        )
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            missing = [s for s in shapes if s not in z.files]
+            if missing:
+                raise OfficialDataError(
+                    f"{path}: no rotations for {', '.join(missing)} (it holds {', '.join(z.files) or 'nothing'}; "
+                    "set data.shapes to a subset)"
+                )
+            return {s: z[s] for s in shapes}
+    except OfficialDataError:
+        raise
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
+        raise OfficialDataError(f"{path}: not a readable .npz ({type(e).__name__}: {e})") from None
+
+
+def _zip_split(root: Path, split: str, shapes: Sequence[str]) -> _Split:
+    """``<root>/<split>/images`` and ``rotations.npz`` (module docstring)."""
+    folder = root / split
+    images = folder / "images"
+    if not images.is_dir():
+        raise OfficialDataError(f"{images}: missing (the unpacked symsol_dataset.zip has {split}/images/)")
+    rotations = _read_npz(folder / "rotations.npz", shapes)
+    by_shape: dict[str, dict[int, Path]] = {s: {} for s in shapes}
+    with os.scandir(images) as it:
+        for entry in it:
+            m = _IMAGE.match(entry.name)
+            if m and m["shape"] in by_shape:
+                by_shape[m["shape"]][int(m["index"])] = Path(entry.path)
+    labels, rots, files, syms = [], [], [], {}
+    for s in shapes:
+        arr = rotations[s]
+        if arr.ndim != 4 or arr.shape[-2:] != (3, 3) or arr.shape[1] < 1:
+            raise OfficialDataError(
+                f"{folder / 'rotations.npz'}: {s!r} has shape {arr.shape}, expected (N, K, 3, 3)"
+            )
+        n = len(arr)
+        have = by_shape[s]
+        if len(have) != n or (n and (min(have) != 0 or max(have) != n - 1)):
+            raise OfficialDataError(
+                f"{images}: {len(have)} {s} images but {n} rotations in rotations.npz "
+                f"(expected {s}_0.png … {s}_{n - 1}.png)"
+            )
+        syms[s] = _symmetries_of(arr, f"{folder / 'rotations.npz'} [{s}]")
+        labels.append(np.full(n, SYMSOL_LABELS.index(s), dtype=np.int64))
+        rots.append(np.asarray(arr[:, 0], dtype=np.float32))
+        files += [have[i] for i in range(n)]
+    return _Split(np.concatenate(labels), np.concatenate(rots), files, None, None, syms, str(folder))
+
+
+def find_tfds_folder(root: Path) -> Path | None:
+    """The prepared ``symmetric_solids/<version>`` folder at or under ``root`` (``root`` itself, its
+    ``symmetric_solids/<version>``, or ``<version>``), the newest version first; ``None``: none."""
+    if (root / "dataset_info.json").is_file():
+        return root
+    for base in (root / _TFDS_NAME, root):
+        if base.is_dir():
+            versions = sorted(
+                (p for p in base.iterdir() if (p / "dataset_info.json").is_file()), reverse=True
+            )
+            if versions:
+                return versions[0]
+    return None
+
+
+def _tfds_split(folder: Path, split: str, shapes: Sequence[str]) -> _Split:
+    """The ``split`` shards of a prepared ``symmetric_solids`` folder (module docstring)."""
+    try:
+        info = json.loads((folder / "dataset_info.json").read_text())
+    except (OSError, ValueError) as e:
+        raise OfficialDataError(f"{folder / 'dataset_info.json'}: not readable JSON ({e})") from None
+    name = info.get("name", _TFDS_NAME)
+    paths = sorted(folder.glob(f"{name}-{split}.tfrecord-*"))
+    if not paths:
+        raise OfficialDataError(
+            f"{folder}: no {name}-{split}.tfrecord-* shards (a prepared tfds folder has them)"
+        )
+    try:
+        shards = [TFRecordFile(p) for p in paths]
+    except TFRecordError as e:
+        raise OfficialDataError(str(e)) from None
+    wanted = {SYMSOL_LABELS.index(s) for s in shapes}
+    labels, rots, where, syms = [], [], [], {}
+    for k, shard in enumerate(shards):
+        for j in range(len(shard)):
+            rec = f"{shard.path} record {j}"
+            try:
+                ex = parse_example(shard.read(j))
+            except TFRecordError as e:
+                raise OfficialDataError(f"{rec}: {e}") from None
+            try:
+                label = int(np.asarray(ex["label_shape"]).reshape(-1)[0])
+                R = np.asarray(ex["rotation"], dtype=np.float32).reshape(3, 3)
+            except (KeyError, IndexError, ValueError, TypeError):
+                raise OfficialDataError(
+                    f"{rec}: not a symmetric_solids example (needs label_shape, rotation, "
+                    f"rotations_equivalent, image; has {', '.join(sorted(ex)) or 'nothing'})"
+                ) from None
+            if not 0 <= label < len(SYMSOL_LABELS):
+                raise OfficialDataError(
+                    f"{rec}: label_shape {label} is not one of 0..{len(SYMSOL_LABELS) - 1}"
+                )
+            if label not in wanted:
+                continue
+            shape = SYMSOL_LABELS[label]
+            if shape not in syms:
+                eq = np.asarray(ex.get("rotations_equivalent", np.zeros(0)), dtype=np.float32)
+                if eq.size == 0 or eq.size % 9:
+                    raise OfficialDataError(f"{rec}: rotations_equivalent has {eq.size} values, not K × 9")
+                syms[shape] = _symmetries_of(eq.reshape(1, -1, 3, 3), rec)
+            labels.append(label)
+            rots.append(R)
+            where.append((k, j))
+    missing = [s for s in shapes if s not in syms]
+    if missing:
+        raise OfficialDataError(
+            f"{folder}: the {split} shards hold no {', '.join(missing)} (set data.shapes to a subset)"
+        )
+    order = np.lexsort((np.arange(len(labels)), np.asarray(labels)))  # by shape, file order within
+    return _Split(
+        np.asarray(labels, dtype=np.int64)[order],
+        np.stack(rots)[order],
+        None,
+        shards,
+        np.asarray(where, dtype=np.int64).reshape(-1, 2)[order],
+        syms,
+        str(folder),
+    )
+
+
+def layout(root: Path) -> str:
+    """``"zip"`` or ``"tfds"``: which layout ``root`` holds; neither → one line naming what was looked for."""
+    if not root.exists():
+        raise OfficialDataError(
+            f"{root}: no such folder — point data.root at the unpacked symsol_dataset.zip or at a prepared "
+            "tensorflow_datasets/symmetric_solids/1.0.0 folder (README, 'The benchmarks' own files')"
+        )
+    if (root / "train" / "images").is_dir() or (root / "test" / "images").is_dir():
+        return "zip"
+    if find_tfds_folder(root) is not None:
+        return "tfds"
+    raise OfficialDataError(
+        f"{root}: neither official SYMSOL layout (expected train/ and test/ with images/ and rotations.npz, "
+        "or a tfds symmetric_solids/<version> folder with dataset_info.json)"
+    )
+
+
+# ----------------------------------------------------------------------------- dataset
+class SymsolOfficialDataset(Dataset):
+    """Map-style samples ``indices`` of a split (module docstring); images decoded on access."""
+
+    def __init__(
+        self, split: _Split, indices: np.ndarray, image_size: int, sym: torch.Tensor, mask: torch.Tensor
+    ) -> None:
+        self.split, self.indices, self.image_size = (
+            split,
+            np.asarray(indices, dtype=np.int64),
+            int(image_size),
+        )
+        self.sym, self.mask = sym, mask  # (labels, K, 3, 3), (labels, K)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def _image(self, i: int) -> torch.Tensor:
+        sp = self.split
+        if sp.files is not None:
+            return decode_png(sp.files[i], self.image_size, str(sp.files[i]))
+        assert sp.shards is not None and sp.where is not None
+        k, j = (int(x) for x in sp.where[i])
+        where = f"{sp.shards[k].path} record {j}"
+        try:
+            ex = parse_example(sp.shards[k].read(j))
+        except TFRecordError as e:
+            raise OfficialDataError(f"{where}: {e}") from None
+        image = ex.get("image")
+        if not isinstance(image, list) or not image:
+            raise OfficialDataError(f"{where}: no encoded image")
+        return decode_png(image[0], self.image_size, where)
+
+    def __getitem__(self, n: int) -> dict[str, torch.Tensor]:
+        i = int(self.indices[n])
+        R = torch.from_numpy(np.array(self.split.rotation[i], dtype=np.float32))
+        label = int(self.split.label[i])
+        return {
+            "image": self._image(i),
+            "pose": R,
+            "rotation": R,
+            "translation": torch.zeros(3),
+            "shape": torch.tensor(label, dtype=torch.int64),
+            "index": torch.tensor(i, dtype=torch.int64),
+            "symmetries": self.sym[label],
+            "symmetries_mask": self.mask[label],
+        }
+
+
+class SymsolOfficialDataModule(LoaderPredictions, L.LightningDataModule):
+    """The official SYMSOL files (module docstring); ``conf/data/symsol_official.yaml``."""
+
+    def __init__(
+        self,
+        root: str | None = None,
+        *,
+        shapes: Sequence[str] = SHAPES,
+        image_size: int = 224,
+        n_per_shape_test: int | None = None,
+        batch_size: int = 32,
+        num_workers: int = 0,
+        group: LieGroup | str = "so3",
+        val_fraction: float = 0.05,
+        max_val: int = 1000,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        if not root:
+            raise OfficialDataError(
+                "data.root is not set: point it at the unpacked symsol_dataset.zip or a prepared "
+                "tensorflow_datasets/symmetric_solids/1.0.0 folder"
+            )
+        self.group = get_group(group) if isinstance(group, str) else group
+        if self.group.name != "so3":
+            raise OfficialDataError(
+                f"SYMSOL images carry rotations only: use group=so3 (got group={self.group.name})"
+            )
+        unknown = [s for s in shapes if s not in SYMSOL_LABELS]
+        if unknown or not shapes:
+            raise OfficialDataError(
+                f"unknown SYMSOL shapes {unknown or '[]'}; available: {', '.join(SYMSOL_LABELS)}"
+            )
+        if not 0.0 < float(val_fraction) < 1.0 or int(max_val) < 1:
+            raise OfficialDataError(
+                f"data.val_fraction must be in (0, 1) and data.max_val ≥ 1, got {val_fraction}, {max_val}"
+            )
+        self.root = Path(os.path.expanduser(str(root)))
+        self.shapes = tuple(shapes)
+        self.image_size = int(image_size)
+        self.n_per_shape_test = None if n_per_shape_test is None else int(n_per_shape_test)
+        self.batch_size, self.num_workers, self.seed = int(batch_size), int(num_workers), int(seed)
+        self.val_fraction, self.max_val = float(val_fraction), int(max_val)
+        self.layout = layout(self.root)
+        self._splits: dict[str, _Split] = {}
+        self.train: Dataset | None = None
+        self.val: Dataset | None = None
+        self.test: Dataset | None = None
+        #: shape → the file's symmetries as a :class:`~posediff.symmetry.SymmetrySet` (the scorer's)
+        self.symmetry_sets: dict[str, SymmetrySet] = {}
+
+    def _split(self, split: str) -> _Split:
+        if split not in self._splits:
+            if self.layout == "zip":
+                sp = _zip_split(self.root, split, self.shapes)
+            else:
+                folder = find_tfds_folder(self.root)
+                assert folder is not None
+                sp = _tfds_split(folder, split, self.shapes)
+            self._splits[split] = sp
+            for s, S in sp.symmetries.items():
+                self.symmetry_sets.setdefault(s, SymmetrySet.from_transforms(S, name=f"{s} ({split} file)"))
+        return self._splits[split]
+
+    def _padded(self, sp: _Split) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every label's symmetry set padded to the largest (identity rows, masked out)."""
+        size = max(len(S) for S in sp.symmetries.values())
+        sym = torch.eye(3).repeat(len(SYMSOL_LABELS), size, 1, 1)
+        mask = torch.zeros(len(SYMSOL_LABELS), size, dtype=torch.bool)
+        for s, S in sp.symmetries.items():
+            k = SYMSOL_LABELS.index(s)
+            sym[k, : len(S)] = torch.from_numpy(S)
+            mask[k, : len(S)] = True
+        return sym, mask
+
+    def _dataset(self, sp: _Split, indices: np.ndarray) -> SymsolOfficialDataset:
+        return SymsolOfficialDataset(sp, indices, self.image_size, *self._padded(sp))
+
+    def setup(self, stage: str | None = None) -> None:
+        if stage in (None, "fit", "validate") and self.train is None:
+            sp = self._split("train")
+            train, val = [], []
+            for s in self.shapes:
+                idx = np.flatnonzero(sp.label == SYMSOL_LABELS.index(s))
+                n_val = min(
+                    max(1, round(self.val_fraction * len(idx))),
+                    self.max_val // len(self.shapes),
+                    len(idx) - 1,
+                )
+                if n_val < 1:
+                    raise OfficialDataError(
+                        f"{sp.source}: one {s} training image: nothing to hold out for validation"
+                    )
+                train.append(idx[:-n_val])
+                val.append(idx[-n_val:])
+            self.train = self._dataset(sp, np.concatenate(train))
+            self.val = self._dataset(sp, np.concatenate(val))
+        if stage in (None, "fit", "validate", "test", "predict") and self.test is None:
+            sp = self._split("test")
+            keep = []
+            for s in self.shapes:
+                idx = np.flatnonzero(sp.label == SYMSOL_LABELS.index(s))
+                keep.append(idx if self.n_per_shape_test is None else idx[: self.n_per_shape_test])
+            self.test = self._dataset(sp, np.concatenate(keep))
+
+    def symmetry_agreement(self) -> dict[str, float]:
+        """Per SYMSOL I shape read, the largest angle (degrees) from a member of the file's symmetry
+        set to posediff's group (:mod:`posediff.symmetry`; cone / cylinder on the file's own grid,
+        so measured exactly): ~0 when the file's object frames are posediff's."""
+        out = {}
+        for s, sset in self.symmetry_sets.items():
+            if s in SHAPES:
+                mine = SymmetrySet.from_shape(s)
+                R = torch.from_numpy(sset.rotations_finite)
+                err = mine.min_angle_deg(R[:, None], torch.eye(3, dtype=R.dtype).expand(len(R), 3, 3))
+                out[s] = float(torch.as_tensor(err).max())
+        return out
+
+    def train_dataloader(self) -> DataLoader:
+        assert self.train is not None, "call setup('fit') first"
+        return ResumableDataLoader(
+            self.train,
+            batch_size=self.batch_size,
+            shuffle=True,
+            seed=self.seed,
+            drop_last=True,
+            num_workers=self.num_workers,
+            persistent_workers=False,
+        )
+
+    def val_dataloader(self) -> DataLoader:
+        assert self.val is not None, "call setup('fit') first"
+        return eval_loader(self.val, batch_size=self.batch_size, num_workers=self.num_workers)
+
+    def test_dataloader(self) -> DataLoader:
+        assert self.test is not None, "call setup() first"
+        return eval_loader(self.test, batch_size=self.batch_size, num_workers=self.num_workers)
+
+    def describe(self) -> str:
+        what = "unpacked symsol_dataset.zip" if self.layout == "zip" else "tfds symmetric_solids"
+        return (
+            f"official SYMSOL ({what} in {self.root}): shapes {', '.join(self.shapes)}, {self.image_size} px"
+        )
+
+    def prediction_input(self, index: int) -> dict[str, Any]:
+        s = self.test_sample(index)
+        shape = SYMSOL_LABELS[int(s["shape"])]
+        sset = self.symmetry_sets.get(shape)
+        gt = None
+        if sset is not None:
+            gt = (s["rotation"].double() @ torch.from_numpy(sset.rotations_finite)).numpy()
+        return {
+            "image": s["image"],
+            "gt_pose": s["pose"],
+            "shape": shape,
+            "gt_rotations": gt,
+            "info": {"shape": shape},
+        }
+
+
+__all__ = [
+    "OfficialDataError",
+    "SymsolOfficialDataModule",
+    "SymsolOfficialDataset",
+    "decode_png",
+    "find_tfds_folder",
+    "layout",
+]

@@ -1,0 +1,432 @@
+"""The paper authors' SYMSOL-T files (Hsiao et al., CVPR 2024), read as posediff's SYMSOL-T.
+
+Their layout (``data=symsolt_official``, ``data.root=`` the folder holding one sub-folder per split,
+``train-45k`` and ``test-5k`` as released; any ``train*`` / ``test*`` folder with an
+``annotations.gz``)::
+
+    <split>/annotations.gz          gzipped pickle: a list of plain dicts, every shape
+    <split>/<shape>/images/000000.png, 000000_color.png, …   224 × 224 RGB, black background
+    <split>/<shape>/points.ply      1024 surface points (not needed here)
+
+A record: ``image`` / ``image_color`` (paths relative to the split folder), ``rotation`` (a wxyz
+quaternion), ``rotations_equivalent`` (``num_equivalents`` × 4 wxyz, the ground truth among them),
+``translation`` (3), ``num_equivalents``, ``label_shape`` (0–4: tet, cube, icosa, cone, cyl),
+``image_id``, ``points``. ``annotations.gz`` is read by :func:`~.unpickle.load_plain_pickle`, which
+refuses every class and function: a file that names one is refused in one line and nothing runs.
+
+Conventions, theirs → posediff's (``docs/conventions.md`` has the table): both cameras are OpenCV
+(x right, y down, z forward) with a 60° field of view and the scene centre at
+:data:`~posediff.data.symsol.SCENE_DISTANCE` on the optical axis, and both translations are the
+object's from that centre, so the camera-frame pose is ``[R | t + (0, 0, SCENE_DISTANCE)]`` in both.
+Their meshes are Open3D's (centred on the vertex mean) and posediff's are its own (centred on the
+centre of mass), so a point ``p`` of posediff's model is ``C·p + o`` in theirs and
+
+    R_posediff = R_theirs · C,    t_posediff = t_theirs + R_theirs · o,
+
+with ``C``, ``o`` per shape (:func:`model_frame`): the cube and cylinder share posediff's frame; their
+cone sits on its base (vertex mean h/362 above it; posediff's centre of mass is h/4 above it), so
+``o = (0, 0, h/4 − h/362)``; their tetrahedron has a vertex on +z and their icosahedron the
+vertices ``(±1, 0, ±φ)`` and cyclic, so ``C`` is the rotation taking posediff's vertex directions
+onto theirs. Their icosahedron is also larger (circumradius 2.66 against posediff's 1.40): the
+images are theirs, so only posediff's own renders and overlays differ in size.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from ...lie import LieGroup, get_group
+from ...symmetry import GOLDEN_RATIO, SHAPES, SymmetrySet
+from ..protocol import LoaderPredictions
+from ..resumable import ResumableDataLoader, eval_loader
+from ..symsol.datamodule import to_sample
+from ..symsol.render import SCENE_DISTANCE, intrinsics
+from ..symsol.shapes import SHAPE_SIZE
+from .symsol import OfficialDataError, _symmetries_of, decode_png
+from .unpickle import UnsafePickleError, load_plain_pickle
+
+ANNOTATIONS = "annotations.gz"
+_KEYS = ("image", "rotation", "rotations_equivalent", "translation", "label_shape")
+
+
+# ----------------------------------------------------------------------------- conventions
+def quaternion_wxyz_to_matrix(q: Any) -> np.ndarray:
+    """``(…, 4)`` wxyz quaternions (normalised here) → ``(…, 3, 3)`` rotation matrices (float64)."""
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def matrix_to_quaternion_wxyz(R: Any) -> np.ndarray:
+    """``(…, 3, 3)`` rotations → ``(…, 4)`` unit wxyz quaternions (w ≥ 0), the inverse of
+    :func:`quaternion_wxyz_to_matrix` (Shepperd's method: the largest of 1 + trace, 1 + 2R_ii − trace)."""
+    R = np.asarray(R, dtype=np.float64)
+    flat = R.reshape(-1, 3, 3)
+    out = np.empty((len(flat), 4))
+    for n, m in enumerate(flat):
+        tr = np.trace(m)
+        cand = [1 + tr, 1 + 2 * m[0, 0] - tr, 1 + 2 * m[1, 1] - tr, 1 + 2 * m[2, 2] - tr]
+        k = int(np.argmax(cand))
+        s = math.sqrt(max(cand[k], 1e-300)) * 2
+        if k == 0:
+            q = [s / 4, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+        elif k == 1:
+            q = [(m[2, 1] - m[1, 2]) / s, s / 4, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+        elif k == 2:
+            q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, s / 4, (m[1, 2] + m[2, 1]) / s]
+        else:
+            q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, s / 4]
+        q = np.asarray(q)
+        out[n] = q * (1.0 if q[0] >= 0 else -1.0) / np.linalg.norm(q)
+    return out.reshape(*R.shape[:-2], 4)
+
+
+def _their_vertex_directions(shape: str) -> np.ndarray:
+    """Unit vertex directions of the authors' Open3D tetrahedron / icosahedron (Open3D's
+    ``CreateTetrahedron`` / ``CreateIcosahedron``)."""
+    if shape == "tet":
+        v = np.array([(math.sqrt(8 / 9), 0, -1 / 3), (-math.sqrt(2 / 9), math.sqrt(2 / 3), -1 / 3),
+                      (-math.sqrt(2 / 9), -math.sqrt(2 / 3), -1 / 3), (0, 0, 1)])  # fmt: skip
+    else:
+        p = GOLDEN_RATIO
+        base = [(a, 0.0, b * p) for a in (-1, 1) for b in (-1, 1)]
+        v = np.array([c[-k:] + c[:-k] if k else c for c in base for k in range(3)], dtype=np.float64)
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def _posediff_vertex_directions(shape: str) -> np.ndarray:
+    if shape == "tet":
+        v = np.array([(1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)], dtype=np.float64)
+    else:
+        p = GOLDEN_RATIO
+        base = [(0.0, a, b * p) for a in (-1, 1) for b in (-1, 1)]
+        v = np.array([c[k:] + c[:k] for c in base for k in range(3)], dtype=np.float64)
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def _frame(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The right-handed orthonormal frame with first axis ``x`` and second in the ``x``, ``y`` plane."""
+    n = np.cross(x, y) / np.linalg.norm(np.cross(x, y))
+    return np.stack([x, np.cross(n, x), n], 1)
+
+
+def _rotation_onto(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """A rotation C with ``C·src`` = ``dst`` as sets of unit vectors (the first found: any two
+    differ by a symmetry of the solid)."""
+    a = src[0]
+    b = next(v for v in src[1:] if abs(v @ a) < 0.999)
+    for i in range(len(dst)):
+        for j in range(len(dst)):
+            if i == j or abs(dst[i] @ dst[j] - a @ b) > 1e-9:
+                continue
+            C = _frame(dst[i], dst[j]) @ _frame(a, b).T
+            if np.abs((src @ C.T) @ dst.T).max(1).min() > 1 - 1e-9:
+                return C
+    raise AssertionError("no rotation maps the vertex sets onto each other")  # pragma: no cover
+
+
+@functools.cache
+def model_frame(shape: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(C (3, 3), o (3,))`` with ``p_theirs = C·p_posediff + o`` for a point of ``shape``'s model
+    (module docstring)."""
+    if shape not in SHAPES:
+        raise OfficialDataError(f"unknown SYMSOL-T shape {shape!r}; available: {', '.join(SHAPES)}")
+    C, o = np.eye(3), np.zeros(3)
+    if shape in ("tet", "icosa"):
+        C = _rotation_onto(_posediff_vertex_directions(shape), _their_vertex_directions(shape))
+    elif shape == "cone":
+        h = SHAPE_SIZE
+        o = np.array([0.0, 0.0, h / 4.0 - h / 362.0])
+    return C, o
+
+
+def to_posediff(shape: str, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Their pose(s) ``R (…, 3, 3)``, ``t (…, 3)`` (scene translation) → posediff's (module docstring)."""
+    C, o = model_frame(shape)
+    return R @ C, t + R @ o
+
+
+def to_theirs(shape: str, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The inverse of :func:`to_posediff`."""
+    C, o = model_frame(shape)
+    R_t = R @ C.T
+    return R_t, t - R_t @ o
+
+
+# ----------------------------------------------------------------------------- records
+def _split_folder(root: Path, split: str) -> Path:
+    cands = sorted(
+        p for p in root.iterdir() if p.is_dir() and p.name.startswith(split) and (p / ANNOTATIONS).is_file()
+    )
+    if not cands:
+        raise OfficialDataError(
+            f"{root}: no {split}* folder with {ANNOTATIONS} (the authors' SYMSOL-T has train-45k/ and test-5k/)"
+        )
+    return cands[0]
+
+
+class _Records:
+    """One split's records, converted (module docstring)."""
+
+    def __init__(self, folder: Path, shapes: Sequence[str], color: bool) -> None:
+        path = folder / ANNOTATIONS
+        try:
+            records = load_plain_pickle(path)
+        except UnsafePickleError as e:
+            raise OfficialDataError(str(e)) from None
+        if not isinstance(records, list):
+            raise OfficialDataError(f"{path}: holds a {type(records).__name__}, expected a list of records")
+        wanted = {SHAPES.index(s) for s in shapes}
+        files, labels, Rs, ts, syms = [], [], [], [], {}
+        for i, rec in enumerate(records):
+            where = f"{path} record {i}"
+            if not isinstance(rec, dict) or any(k not in rec for k in _KEYS):
+                have = ", ".join(sorted(map(str, rec))) if isinstance(rec, dict) else type(rec).__name__
+                raise OfficialDataError(f"{where}: needs {', '.join(_KEYS)}; has {have}")
+            try:
+                label = int(rec["label_shape"])
+                q = np.asarray(rec["rotation"], dtype=np.float64).reshape(4)
+                t = np.asarray(rec["translation"], dtype=np.float64).reshape(3)
+                eq = np.asarray(rec["rotations_equivalent"], dtype=np.float64).reshape(-1, 4)
+                image = str(rec["image_color" if color else "image"])
+            except (TypeError, ValueError, KeyError):
+                raise OfficialDataError(
+                    f"{where}: rotation must be 4 numbers (wxyz), translation 3, rotations_equivalent 4·n, "
+                    "label_shape an integer"
+                ) from None
+            if not 0 <= label < len(SHAPES):
+                raise OfficialDataError(f"{where}: label_shape {label} is not one of 0..{len(SHAPES) - 1}")
+            if label not in wanted:
+                continue
+            shape = SHAPES[label]
+            R_t = quaternion_wxyz_to_matrix(q)
+            R, t_p = to_posediff(shape, R_t, t)
+            if shape not in syms:
+                R_eq = quaternion_wxyz_to_matrix(eq) @ model_frame(shape)[0]
+                # the ground truth's position in the list is theirs to choose: put it first
+                k0 = int(np.argmax(np.einsum("kij,ij->k", R_eq, R)))
+                R_eq = np.concatenate([R_eq[k0 : k0 + 1], np.delete(R_eq, k0, 0)])
+                syms[shape] = _symmetries_of(R_eq[None], where)
+            f = folder / image
+            files.append(f)
+            labels.append(label)
+            Rs.append(R)
+            ts.append(t_p)
+        missing = [s for s in shapes if s not in syms]
+        if missing:
+            raise OfficialDataError(
+                f"{path}: no records of {', '.join(missing)} (set data.shapes to a subset)"
+            )
+        absent = next((f for f in files if not f.is_file()), None)
+        if absent is not None:
+            raise OfficialDataError(f"{absent}: missing (named by {path}); the folder is incomplete")
+        order = np.lexsort((np.arange(len(labels)), np.asarray(labels)))
+        self.path = path
+        self.files = [files[k] for k in order]
+        self.label = np.asarray(labels, dtype=np.int64)[order]
+        self.rotation = np.stack(Rs)[order].astype(np.float32)
+        self.translation = np.stack(ts)[order].astype(np.float32)
+        self.symmetries = syms
+
+    def __len__(self) -> int:
+        return len(self.label)
+
+
+class SymsoltOfficialDataset(Dataset):
+    """Samples ``indices`` of a split as posediff's SYMSOL-T samples (plus ``symmetries`` / ``symmetries_mask``)."""
+
+    def __init__(
+        self, records: _Records, indices: np.ndarray, image_size: int, rotation_only: bool,
+        sym: torch.Tensor, mask: torch.Tensor,
+    ) -> None:  # fmt: skip
+        self.records, self.indices, self.image_size = (
+            records,
+            np.asarray(indices, dtype=np.int64),
+            int(image_size),
+        )
+        self.rotation_only, self.sym, self.mask = rotation_only, sym, mask
+        self.K = intrinsics(self.image_size)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, n: int) -> dict[str, Any]:
+        i = int(self.indices[n])
+        r = self.records
+        f = r.files[i]
+        image = decode_png(f, self.image_size, str(f))
+        rgb = (image.permute(1, 2, 0).numpy() * 255.0).round().astype(np.uint8)
+        t_cam = r.translation[i].astype(np.float64) + np.array([0.0, 0.0, SCENE_DISTANCE])
+        label = int(r.label[i])
+        out = to_sample(rgb, r.rotation[i], t_cam, label, self.K, i, rotation_only=self.rotation_only)
+        out["image"] = image
+        out["symmetries"], out["symmetries_mask"] = self.sym[label], self.mask[label]
+        return out
+
+
+class SymsoltOfficialDataModule(LoaderPredictions, L.LightningDataModule):
+    """The authors' SYMSOL-T (module docstring); ``conf/data/symsolt_official.yaml``. Validation holds
+    out the last ``val_fraction`` of each shape's training records (training skips them)."""
+
+    def __init__(
+        self,
+        root: str | None = None,
+        *,
+        shapes: Sequence[str] = SHAPES,
+        image_size: int = 224,
+        color: bool = False,
+        n_per_shape_test: int | None = None,
+        batch_size: int = 16,
+        num_workers: int = 0,
+        group: LieGroup | str = "se3",
+        val_fraction: float = 0.05,
+        max_val: int = 1000,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        if not root:
+            raise OfficialDataError(
+                "data.root is not set: point it at the authors' SYMSOL-T folder (train-45k/, test-5k/)"
+            )
+        self.root = Path(os.path.expanduser(str(root)))
+        if not self.root.is_dir():
+            raise OfficialDataError(
+                f"{self.root}: no such folder — point data.root at the authors' SYMSOL-T folder holding "
+                "train-45k/ and test-5k/ (README, 'The benchmarks' own files')"
+            )
+        self.group = get_group(group) if isinstance(group, str) else group
+        if self.group.name not in ("so3", "se3", "r3so3"):
+            raise OfficialDataError(
+                f"SYMSOL-T poses need a 3-D rotation group (so3, se3, r3so3), not {self.group.name!r}"
+            )
+        unknown = [s for s in shapes if s not in SHAPES]
+        if unknown or not shapes:
+            raise OfficialDataError(
+                f"unknown SYMSOL-T shapes {unknown or '[]'}; available: {', '.join(SHAPES)}"
+            )
+        if not 0.0 < float(val_fraction) < 1.0 or int(max_val) < 1:
+            raise OfficialDataError(
+                f"data.val_fraction must be in (0, 1) and data.max_val ≥ 1, got {val_fraction}, {max_val}"
+            )
+        self.shapes, self.image_size, self.color = tuple(shapes), int(image_size), bool(color)
+        self.n_per_shape_test = None if n_per_shape_test is None else int(n_per_shape_test)
+        self.batch_size, self.num_workers, self.seed = int(batch_size), int(num_workers), int(seed)
+        self.val_fraction, self.max_val = float(val_fraction), int(max_val)
+        self.rotation_only = self.group.matrix_dim == 3
+        self._records: dict[str, _Records] = {}
+        self.train: Dataset | None = None
+        self.val: Dataset | None = None
+        self.test: Dataset | None = None
+        #: shape → the file's symmetries (converted to posediff's model frame), the scorer's
+        self.symmetry_sets: dict[str, SymmetrySet] = {}
+
+    def records(self, split: str) -> _Records:
+        if split not in self._records:
+            r = _Records(_split_folder(self.root, split), self.shapes, self.color)
+            self._records[split] = r
+            for s, S in r.symmetries.items():
+                self.symmetry_sets.setdefault(s, SymmetrySet.from_transforms(S, name=f"{s} ({split} file)"))
+        return self._records[split]
+
+    def _dataset(self, r: _Records, indices: np.ndarray) -> SymsoltOfficialDataset:
+        size = max(len(S) for S in r.symmetries.values())
+        sym = torch.eye(3).repeat(len(SHAPES), size, 1, 1)
+        mask = torch.zeros(len(SHAPES), size, dtype=torch.bool)
+        for s, S in r.symmetries.items():
+            k = SHAPES.index(s)
+            sym[k, : len(S)] = torch.from_numpy(S)
+            mask[k, : len(S)] = True
+        return SymsoltOfficialDataset(r, indices, self.image_size, self.rotation_only, sym, mask)
+
+    def setup(self, stage: str | None = None) -> None:
+        if stage in (None, "fit", "validate") and self.train is None:
+            r = self.records("train")
+            train, val = [], []
+            for s in self.shapes:
+                idx = np.flatnonzero(r.label == SHAPES.index(s))
+                n_val = min(
+                    max(1, round(self.val_fraction * len(idx))),
+                    self.max_val // len(self.shapes),
+                    len(idx) - 1,
+                )
+                if n_val < 1:
+                    raise OfficialDataError(f"{r.path}: one {s} record: nothing to hold out for validation")
+                train.append(idx[:-n_val])
+                val.append(idx[-n_val:])
+            self.train = self._dataset(r, np.concatenate(train))
+            self.val = self._dataset(r, np.concatenate(val))
+        if stage in (None, "fit", "validate", "test", "predict") and self.test is None:
+            r = self.records("test")
+            keep = [np.flatnonzero(r.label == SHAPES.index(s)) for s in self.shapes]
+            if self.n_per_shape_test is not None:
+                keep = [k[: self.n_per_shape_test] for k in keep]
+            self.test = self._dataset(r, np.concatenate(keep))
+
+    def symmetry_agreement(self) -> dict[str, float]:
+        """Per shape read, the largest angle (degrees) from a member of the file's symmetry set (in
+        posediff's frame) to posediff's group: ~0 when the frame conversion is right."""
+        out = {}
+        for s, sset in self.symmetry_sets.items():
+            R = torch.from_numpy(sset.rotations_finite)
+            err = SymmetrySet.from_shape(s).min_angle_deg(
+                R[:, None], torch.eye(3, dtype=R.dtype).expand(len(R), 3, 3)
+            )
+            out[s] = float(torch.as_tensor(err).max())
+        return out
+
+    def train_dataloader(self) -> DataLoader:
+        assert self.train is not None, "call setup('fit') first"
+        return ResumableDataLoader(self.train, batch_size=self.batch_size, shuffle=True, seed=self.seed,
+                                   drop_last=True, num_workers=self.num_workers, persistent_workers=False)  # fmt: skip
+
+    def val_dataloader(self) -> DataLoader:
+        assert self.val is not None, "call setup('fit') first"
+        return eval_loader(self.val, batch_size=self.batch_size, num_workers=self.num_workers)
+
+    def test_dataloader(self) -> DataLoader:
+        assert self.test is not None, "call setup() first"
+        return eval_loader(self.test, batch_size=self.batch_size, num_workers=self.num_workers)
+
+    def describe(self) -> str:
+        return f"the authors' SYMSOL-T ({self.root}): shapes {', '.join(self.shapes)}, {self.image_size} px"
+
+    def prediction_input(self, index: int) -> dict[str, Any]:
+        s = self.test_sample(index)
+        K, offset = self.image_camera({"image_size": self.image_size})
+        shape = SHAPES[int(s["shape"])]
+        return {"image": s["image"], "gt_pose": s["pose"], "shape": shape, "K": K, "camera_offset": offset,
+                "info": {"shape": shape}}  # fmt: skip
+
+    @classmethod
+    def image_camera(cls, data_config: Any) -> tuple[Any, Any]:
+        """Their camera (the same as posediff's renderer's) at ``image_size``, and the scene centre."""
+        return intrinsics(int(data_config["image_size"])), np.array([0.0, 0.0, SCENE_DISTANCE])
+
+
+__all__ = [
+    "SymsoltOfficialDataModule",
+    "SymsoltOfficialDataset",
+    "matrix_to_quaternion_wxyz",
+    "model_frame",
+    "quaternion_wxyz_to_matrix",
+    "to_posediff",
+    "to_theirs",
+]
