@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -61,7 +62,7 @@ def mode_coverage(shape: Symmetries, R_samples: Tensor, R_gt: Tensor, threshold_
     sym = as_symmetry_set(shape)
     if sym.is_continuous:
         return torch.full(batch, math.nan, dtype=R_samples.dtype, device=R_samples.device)
-    G = torch.from_numpy(sym.rotations()).to(dtype=R_samples.dtype, device=R_samples.device)
+    G = torch.from_numpy(np.array(sym.rotations())).to(dtype=R_samples.dtype, device=R_samples.device)
     M = R_gt.unsqueeze(-3).mT @ R_samples  # (…, N, 3, 3)
     # angle(R_gt S, R_n) = angle(Sᵀ M_n); tr(Sᵀ M) = Σ_ij S_ij M_ij; angle < thr ⟺ tr > 1 + 2 cos thr
     traces = torch.einsum("...nij,sij->...ns", M, G)
