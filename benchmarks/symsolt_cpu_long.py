@@ -65,10 +65,8 @@ RUNS: dict[str, list[str]] = {
     ],
     # the quickstart now (32 images x 32 noisy poses, the symmetry-folded denoiser)
     "r3so3_fold": ["group=r3so3"],
-    # the same recipe, its learning rate decayed over a longer budget (--max-steps 17500)
-    "r3so3_fold_long": ["group=r3so3"],
 }
-STYLES = {"r3so3": "-", "se3": "--", "regression": "-.", "r3so3_fold": ":", "r3so3_fold_long": (0, (1, 3))}
+STYLES = {"r3so3": "-", "se3": "--", "regression": "-.", "r3so3_fold": ":"}
 
 
 def command(name: str, run: Path, max_steps: int) -> list[str]:
