@@ -43,6 +43,12 @@ SYMSOL = ["+experiment=quickstart", "data.image_size=32", "data.shapes=[tet,cube
           "data.n_per_shape_test=1", "module.num_noisy=4", "denoiser.hidden_dim=16", "encoder.out_dim=16",
           "encoder.crop_size=null", "encoder.depth_cue=null", "trainer.max_steps=2", "trainer.enable_progress_bar=false",
           "eval.before=false", "eval.num_samples=1", "eval.num_steps=[2]"]  # fmt: skip
+OFFICIAL = ["+experiment=symsol_so3", "encoder.arch=resnet18", "encoder.out_dim=16", "denoiser.hidden_dim=16",
+            "data=symsol_official", "data.image_size=32", "data.batch_size=2", "data.num_workers=0",
+            "data.shapes=[tet,cube]", "module.num_noisy=4", "trainer.max_steps=1", "trainer.precision=32-true",
+            "trainer.enable_progress_bar=false", "eval.before=false", "eval.num_samples=1", "eval.num_steps=[2]",
+            "eval.log_likelihood=false"]  # fmt: skip
+OFFICIAL_T = [*OFFICIAL[:4], "data=symsolt_official", "group=se3", *OFFICIAL[5:]]
 RENDER = ["data", "render", "dataset=symsolt", "image_size=32", "n_per_shape=2", "shapes=[tet,cube]",
           "shard_size=2", "progress=false"]  # fmt: skip
 
@@ -204,6 +210,61 @@ def _paused_render(env: Env) -> dict[str, str]:
 
 def _render_paused(env: Env) -> bool:
     return any((env.dir / "paused").glob("paused-*"))
+
+
+def _official(env: Env, shapes: tuple[str, ...] = ("tet", "cube")) -> Path:
+    """A tiny unpacked symsol_dataset.zip (posediff's renders) in the case folder."""
+    from posediff.data.official.fixture import make_symsol_fixture
+
+    return make_symsol_fixture(
+        env.dir / "symsol_dataset", layout="zip", n_per_shape=2, shapes=shapes, image_size=32
+    )
+
+
+def _official_without_image(env: Env) -> Path:
+    root = _official(env)
+    (root / "train" / "images" / "cube_00001.png").unlink()
+    return root
+
+
+def _official_truncated_png(env: Env) -> Path:
+    root = _official(env)
+    for png in (root / "train" / "images").glob("*.png"):
+        png.write_bytes(png.read_bytes()[:60])
+    return root
+
+
+def _authors_symsolt(env: Env, annotations: bytes | None = None) -> Path:
+    """A tiny copy of the authors' SYMSOL-T layout; ``annotations``: the test split's annotations.gz."""
+    from posediff.data.official.fixture import make_symsolt_fixture
+
+    root = make_symsolt_fixture(env.dir / "symsolt", n_per_shape=2, shapes=["tet", "cube"], image_size=32)
+    if annotations is not None:
+        for split in root.iterdir():
+            (split / "annotations.gz").write_bytes(annotations)
+    return root
+
+
+class _Touch:
+    """A pickled payload: unpickling it would create the sentinel file ``pwned``."""
+
+    def __init__(self, target: Path) -> None:
+        self.target = target
+
+    def __reduce__(self):  # noqa: ANN204
+        return (os.system, (f"touch {self.target}",))
+
+
+def _annotations_payload(env: Env) -> Path:
+    import gzip
+    import pickle
+
+    return _authors_symsolt(env, gzip.compress(pickle.dumps([_Touch(env.dir / "pwned")])))
+
+
+def _payload_did_not_run(env: Env) -> None:
+    assert not (env.dir / "pwned").exists(), "the pickle's payload ran"
+    _no_checkpoints(env)
 
 
 def _run(env: Env) -> str:
@@ -454,6 +515,25 @@ CASES = [
          lambda e: ["fit", *SYMSOL, f"data.root={_symsol_meta(e, '[]')}", _run(e)], "meta.json"),
     Case("render_resume_other_seed", "refused: the shards were rendered from another seed",
          lambda e: [*RENDER, "split=train", "seed=1", f"out={_symsol_without_meta(e)}"], "seed"),
+    # ---- the benchmarks' own files (data=symsol_official, data=symsolt_official)
+    Case("official_neither_layout", "the folder named, both layouts described",
+         lambda e: ["fit", *OFFICIAL, f"data.root={e.dir}", _run(e)], "neither official SYMSOL layout",
+         after=_no_checkpoints),
+    Case("official_npz_key_missing", "rotations.npz named, the shapes it holds",
+         lambda e: ["fit", *OFFICIAL, f"data.root={_official(e, ('tet',))}", _run(e)], "no rotations for cube",
+         after=_no_checkpoints),
+    Case("official_count_mismatch", "the images folder named, images against rotations",
+         lambda e: ["fit", *OFFICIAL, f"data.root={_official_without_image(e)}", _run(e)], "1 cube images but 2 rotations",
+         after=_no_checkpoints),
+    Case("official_truncated_png", "the image file named",
+         lambda e: ["fit", *OFFICIAL, f"data.root={_official_truncated_png(e)}", _run(e)], ".png: not a readable image",
+         after=_no_checkpoints),
+    Case("symsolt_annotations_not_gzip", "annotations.gz named: not gzip",
+         lambda e: ["fit", *OFFICIAL_T, f"data.root={_authors_symsolt(e, b'plain text')}", _run(e)], "not a gzip file",
+         after=_no_checkpoints),
+    Case("symsolt_annotations_payload", "refused, the class named; the payload never runs",
+         lambda e: ["fit", *OFFICIAL_T, f"data.root={_annotations_payload(e)}", _run(e)], "nothing in it was run",
+         after=_payload_did_not_run),
     # ---- names
     Case("unknown_group", "the registered groups listed",
          lambda e: ["fit", "group=nope"], "available: r3so3, se2, se3, so3"),

@@ -330,9 +330,9 @@ def test_symsolt_official_bad_inputs(tmp_path: Path) -> None:
 
 
 # ----------------------------------------------------------------------------- the commands
-SO3_SMALL = ["+experiment=symsol_so3", "encoder.arch=resnet18", "data.image_size=32", "module.num_noisy=4",
+SO3_SMALL = ["+experiment=symsol_so3", "encoder.arch=resnet18", "data.num_workers=0", "data.image_size=32", "module.num_noisy=4",
              "data.batch_size=4", "trainer.max_steps=2", "trainer.val_check_interval=2", "eval.num_samples=2",
-             "eval.num_steps=[3]", "trainer.enable_progress_bar=false"]  # fmt: skip
+             "eval.num_steps=[3]", "trainer.enable_progress_bar=false", "eval.log_likelihood_steps=4"]  # fmt: skip
 T_SMALL = ["+experiment=quickstart", "module.num_noisy=4", "data.batch_size=4", "trainer.max_steps=2",
            "trainer.val_check_interval=2", "eval.num_samples=2", "eval.before_num_samples=2", "eval.num_steps=[3]",
            "trainer.enable_progress_bar=false"]  # fmt: skip
@@ -347,6 +347,8 @@ def test_fit_eval_predict_on_the_official_files(
     else:
         args = [*SO3_SMALL, "data=symsol_official", f"data.root={symsol_zip if which == 'zip' else symsol_tfds}",
                 "data.image_size=32", "data.shapes=[tet,cube,icosa,cone,cyl,tetX,cylO,sphereX]"]  # fmt: skip
+        if which == "tfds":  # the default (on) is checked on the zip layout; one ODE pass is enough
+            args.append("eval.log_likelihood=false")
     run = tmp_path / "fit"
     assert main(["fit", *args, f"hydra.run.dir={run}"]) == 0
     metrics = json.loads((run / "metrics.json").read_text())
@@ -364,3 +366,23 @@ def test_fit_eval_predict_on_the_official_files(
     assert main(["predict", f"ckpt_path={ckpt}", "index=1", "num_samples=4", f"hydra.run.dir={pr}"]) == 0
     assert (pr / "poses.json").is_file()
     assert torch.isfinite(torch.from_numpy(np.load(pr / "poses.npz")["samples"])).all()
+
+
+def test_log_likelihood_units(symsol_zip: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A model whose score is zero everywhere leaves the ODE at rest: every ground truth gets the
+    Haar prior's density, which in Implicit-PDF's units is exactly −ln π² (≈ −2.29)."""
+    from posediff.checkpoint import load_checkpoint
+    from posediff.evaluation import evaluate_data
+
+    run = tmp_path / "fit"
+    args = [*SO3_SMALL, "data=symsol_official", f"data.root={symsol_zip}", "data.image_size=32",
+            "eval.before=false", "eval.log_likelihood=false", "diffusion.prior=haar"]  # fmt: skip
+    assert main(["fit", *args, f"hydra.run.dir={run}"]) == 0
+    module = load_checkpoint(run / "checkpoints" / "last.ckpt")
+    dm = SymsolOfficialDataModule(str(symsol_zip), image_size=32, batch_size=5, group="so3")
+    dm.setup("test")
+    monkeypatch.setattr(type(module.diffusion), "to_score", lambda self, out, sigma: out * 0.0)
+    res = evaluate_data(module, dm, num_samples=1, num_steps=2, log_likelihood=True, log_likelihood_steps=6)
+    for row in res["shapes"].values():
+        assert row["log_likelihood"] == pytest.approx(-np.log(np.pi**2), abs=1e-5)
+        assert row["log_likelihood_ode_error"] == pytest.approx(0.0, abs=1e-6)

@@ -165,6 +165,7 @@ BOUNDS: dict[str, Whole | Real] = {
     # evaluation, prediction, export, distillation
     "num_samples": Whole(1, 100_000),
     "before_num_samples": Whole(1, 100_000, nullable=True),
+    "log_likelihood_steps": Whole(2, 10_000),
     "max_inputs": Whole(1, 10**9, nullable=True),
     "index": Whole(0, 10**9, nullable=True),
     "top_modes": Whole(0, 1000),

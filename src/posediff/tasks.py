@@ -22,6 +22,17 @@ from .lie import LieGroup
 from .testing import LIE_GROUP_CHECKS
 
 
+def likelihood_options(eval_cfg: Any) -> dict[str, Any]:
+    """``eval.log_likelihood`` (null: the data's default, on for SYMSOL) and ``eval.log_likelihood_steps``."""
+    flag = eval_cfg.get("log_likelihood")
+    if flag is not None and not isinstance(flag, bool):
+        raise ValueError(f"eval.log_likelihood must be true, false or null, got {flag!r}")
+    steps = eval_cfg.get("log_likelihood_steps", 50)
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 2:
+        raise ValueError(f"eval.log_likelihood_steps must be a whole number of at least 2, got {steps!r}")
+    return {"log_likelihood": flag, "log_likelihood_steps": steps}
+
+
 def list_groups() -> int:
     """``posediff groups``: the registered Lie groups and their tensor layouts."""
     table = Table(title="registered Lie groups")
@@ -131,6 +142,11 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
+        likelihood = likelihood_options(cfg.eval)  # refused before training, not after it
+    except ValueError as e:
+        print(f"posediff fit: {e}", file=sys.stderr)
+        return 2
+    try:
         datamodule = instantiate(cfg.data)
         datamodule.setup("fit")
     except Exception as e:  # noqa: BLE001 - missing / malformed data: one line, not a traceback
@@ -195,6 +211,7 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
             num_samples=int(cfg.eval.get("before_num_samples") or cfg.eval.num_samples),
             num_steps=int(max(cfg.eval.num_steps)),
             seed=int(cfg.eval.seed),
+            log_likelihood=False,  # the untrained row: its density is the prior's, whatever the image
         )
         results["before"].pop("estimates", None)
         print(f"before training: {headline(results['before'])}")
@@ -227,6 +244,7 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
                 num_steps=int(steps),
                 sampler=sampler,
                 seed=int(cfg.eval.seed),
+                **likelihood,
             )
             csv = write_results(res, datamodule, out_dir, f"{name}_{int(steps)}steps")
             if csv is not None:
@@ -392,6 +410,7 @@ def evaluate_checkpoint(cfg: DictConfig) -> int:
         if cfg.max_inputs is not None:
             _whole(cfg.max_inputs, "max_inputs")
         device = _device(str(cfg.device))
+        likelihood = likelihood_options(cfg.get("eval") or {})
         module, run = _checkpoint_run(cfg)
         datamodule = _data(run)
     except (CheckpointError, ValueError, FileNotFoundError, RuntimeError) as e:
@@ -407,6 +426,7 @@ def evaluate_checkpoint(cfg: DictConfig) -> int:
         seed=int(cfg.seed),
         max_inputs=cfg.max_inputs,
         vsd=bool(cfg.get("vsd", True)),
+        **likelihood,
     )
     write_results(result, datamodule, out_dir)
     result.update(

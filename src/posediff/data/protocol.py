@@ -20,6 +20,9 @@ and call (README, "How to add a dataset"). A Lightning ``LightningDataModule`` w
     ``camera_offset``, ``shape``, ``mesh``, ``gt_rotations``, ``mode_translation_radius``, ``info``.
 ``image_camera(data_config) -> (K, camera_offset)`` (class method)
     the camera of an arbitrary input image (``predict image=…``), or ``(None, None)``;
+``log_likelihood_default`` (optional, default False)
+    whether evaluations report the ground truth's log density when ``eval.log_likelihood`` is null
+    (SYMSOL: yes).
 ``needs_test_target`` (class attribute)
     True when a prediction needs a test target's box and camera (BOP), so ``image=`` is refused.
 """

@@ -39,12 +39,20 @@ from .shapes import evaluate
 
 def _score_shapes(module: Any, datamodule: Any, **kwargs: Any) -> dict[str, Any]:
     kwargs.pop("vsd", None)  # a BOP option
+    if kwargs.get("log_likelihood") is None:  # auto: on for SO(3) data that asks for it (SYMSOL)
+        kwargs["log_likelihood"] = bool(getattr(datamodule, "log_likelihood_default", False)) and (
+            getattr(module, "estimator", None) is None
+        )
     sets = getattr(datamodule, "symmetry_sets", None)  # the official SYMSOL files' own equivalents
     return evaluate(module, datamodule.test_dataloader(), list(getattr(datamodule, "shapes", [])),
                     symmetry_sets=sets, **kwargs)  # fmt: skip
 
 
 def _score_bop(module: Any, datamodule: Any, **kwargs: Any) -> dict[str, Any]:
+    if kwargs.pop("log_likelihood", None):
+        raise ValueError("log-likelihood is reported for SYMSOL, SYMSOL-T and the toys, not for BOP data "
+                         "(set eval.log_likelihood=false)")  # fmt: skip
+    kwargs.pop("log_likelihood_steps", None)
     return evaluate_bop(module, datamodule, **kwargs)
 
 

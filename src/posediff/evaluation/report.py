@@ -42,6 +42,9 @@ COLUMNS: tuple[tuple[str, str], ...] = (
     ("recall_trans@5cm", "T@5cm"),
     ("recall_trans@10cm", "T@10cm"),
     ("coverage", "coverage"),
+    ("log_likelihood", "log-lik."),
+    ("log_likelihood_joint", "joint log-lik."),
+    ("log_likelihood_ode_error", "± ODE"),
 )
 #: the paper's per-axis translation recalls (its supplement, "Translation Analysis on T-LESS")
 AXIS_COLUMNS: tuple[tuple[str, str], ...] = tuple(
@@ -91,6 +94,13 @@ def run_table(result: dict[str, Any]) -> str:
             f"input, {result.get('inputs', '?')} inputs; {result.get('seconds_per_input', math.nan):.3f} s per input\n\n"
         )
         missing = f"{result.get('skipped')} without an estimate (too few visible pixels)"
+        ll = result.get("log_likelihood")
+        if ll:
+            title += (
+                f"{'joint ' if ll['key'] == 'log_likelihood_joint' else ''}log-likelihood of the ground truth: "
+                f"probability-flow ODE on {ll['steps']} levels (± ODE: the mean difference to {ll['check_steps']}), "
+                f"{ll['seconds_per_input']:.3f} s per input; density w.r.t. the {ll['measure']}\n\n"
+            )
     if result.get("kind") != "bop":
         return title + _markdown(header, body)
     note = (

@@ -158,7 +158,7 @@ def _zip_split(root: Path, split: str, shapes: Sequence[str]) -> _Split:
         if len(have) != n or (n and (min(have) != 0 or max(have) != n - 1)):
             raise OfficialDataError(
                 f"{images}: {len(have)} {s} images but {n} rotations in rotations.npz "
-                f"(expected {s}_0.png … {s}_{n - 1}.png)"
+                f"(expected {s}_<index>.png for every index 0 … {n - 1})"
             )
         syms[s] = _symmetries_of(arr, f"{folder / 'rotations.npz'} [{s}]")
         labels.append(np.full(n, SYMSOL_LABELS.index(s), dtype=np.int64))
@@ -363,6 +363,9 @@ class SymsolOfficialDataModule(LoaderPredictions, L.LightningDataModule):
         self.test: Dataset | None = None
         #: shape → the file's symmetries as a :class:`~posediff.symmetry.SymmetrySet` (the scorer's)
         self.symmetry_sets: dict[str, SymmetrySet] = {}
+
+    #: evaluations report the ground truth's log density by default (SYMSOL's ranking metric)
+    log_likelihood_default = True
 
     def _split(self, split: str) -> _Split:
         if split not in self._splits:

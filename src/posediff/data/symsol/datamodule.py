@@ -380,6 +380,11 @@ class SymsolDataModule(LoaderPredictions, L.LightningDataModule):
         assert self.test is not None, "call setup() first"
         return eval_loader(self.test, batch_size=self.batch_size, num_workers=self.num_workers)
 
+    @property
+    def log_likelihood_default(self) -> bool:
+        """Evaluations report the ground truth's log density by default on SYMSOL (rotation only)."""
+        return self.dataset == "symsol" and self.rotation_only
+
     # ------------------------------------------------------------------ posediff.data.PoseDataModule
     def describe(self) -> str:
         where = f"shards in {self.root}" if self.mode == "shards" else "rendered on the fly"
