@@ -208,11 +208,21 @@ def test_symsol_official_bad_inputs(tmp_path: Path) -> None:
     dm.setup("test")
     with pytest.raises(OfficialDataError, match=r"tet_00001.png: not a readable image"):
         dm.test[1]
-    # equivalents that are not one right-acting set
+    # a file of camera → object rotations (equivalents S·R) is read transposed: the same poses
     z = dict(np.load(root / "train" / "rotations.npz"))
-    z["tet"] = np.einsum("kij,nkjl->nkil", z["tet"][0], z["tet"])  # a left action
+    truth = torch.from_numpy(z["tet"][:, 0].copy())
+    np.savez(root / "train" / "rotations.npz", **{**z, "tet": z["tet"].swapaxes(-1, -2)})
+    dm = SymsolOfficialDataModule(str(root), shapes=["tet"], image_size=32, group="so3")
+    dm.setup("fit")
+    got = torch.stack(
+        [dm.train[i]["rotation"] for i in range(len(dm.train))]
+        + [dm.val[i]["rotation"] for i in range(len(dm.val))]
+    )
+    torch.testing.assert_close(got, truth)
+    # equivalents that are not one symmetry set at all
+    z["tet"] = np.einsum("kij,nkjl->nkil", z["tet"][0], z["tet"])
     np.savez(root / "train" / "rotations.npz", **z)
-    with pytest.raises(OfficialDataError, match="not image 0's symmetry set"):
+    with pytest.raises(OfficialDataError, match="not one symmetry set"):
         SymsolOfficialDataModule(str(root), shapes=["tet"], group="so3").setup("fit")
 
 

@@ -95,22 +95,34 @@ class _Split:
         return len(self.label)
 
 
-def _symmetries_of(equivalents: np.ndarray, where: str, check: int = 8) -> np.ndarray:
-    """The object-frame set ``R_0ᵀ R_k`` of a shape's ``(N, K, 3, 3)`` equivalents (from image 0),
-    checked to be the same set for the first ``check`` images (else the file's equivalents are not a
-    right action of one group: refused)."""
-    eq = np.asarray(equivalents, dtype=np.float64)
+def _consistent_right_set(eq: np.ndarray) -> np.ndarray | None:
+    """``R_0ᵀ R_k`` of image 0 if every image's ``R_0ᵀ R_k`` is the same set (each member within 0.1°
+    of one of image 0's), else ``None``."""
     S = np.einsum("kji,kjl->kil", np.broadcast_to(eq[0, :1], eq[0].shape), eq[0])
-    for i in range(1, min(check, len(eq))):
+    for i in range(1, len(eq)):
         Si = np.einsum("kji,kjl->kil", np.broadcast_to(eq[i, :1], eq[i].shape), eq[i])
-        # each member of image i's set within 0.1° of one of image 0's (tr(AᵀB) ≥ 1 + 2cos 0.1°)
-        tr = np.einsum("aij,bij->ab", Si, S)
-        if tr.max(1).min() < 1.0 + 2.0 * np.cos(np.radians(0.1)):
-            raise OfficialDataError(
-                f"{where}: the equivalent rotations of image {i} are not image 0's symmetry set "
-                "(expected [i, k] = [i, 0]·S_k for one set S)"
-            )
-    return S.astype(np.float32)
+        if np.einsum("aij,bij->ab", Si, S).max(1).min() < 1.0 + 2.0 * np.cos(np.radians(0.1)):
+            return None
+    return S
+
+
+def _symmetries_of(equivalents: np.ndarray, where: str, check: int = 8) -> tuple[np.ndarray, bool]:
+    """The object-frame symmetry set ``S_k = R_0ᵀ R_k`` of a shape's ``(N, K, 3, 3)`` equivalents
+    (from the first ``check`` images), and whether the file's rotations must be transposed to be
+    posediff's object → camera rotations: equivalents ``R·S_k`` (a right action) are read as they
+    are; equivalents ``S_k·R`` (the file storing camera → object rotations) are transposed. Neither
+    (or one image only, which cannot tell) → read as they are when one image, else refused."""
+    eq = np.asarray(equivalents[:check], dtype=np.float64)
+    S = _consistent_right_set(eq)
+    if S is not None:
+        return S.astype(np.float32), False
+    S = _consistent_right_set(eq.swapaxes(-1, -2))
+    if S is not None:
+        return S.astype(np.float32), True
+    raise OfficialDataError(
+        f"{where}: the equivalent rotations are not one symmetry set (expected [i, k] = [i, 0]·S_k, or "
+        "S_k·[i, 0], for one set S)"
+    )
 
 
 def _read_npz(path: Path, shapes: Sequence[str]) -> dict[str, np.ndarray]:
@@ -160,9 +172,10 @@ def _zip_split(root: Path, split: str, shapes: Sequence[str]) -> _Split:
                 f"{images}: {len(have)} {s} images but {n} rotations in rotations.npz "
                 f"(expected {s}_<index>.png for every index 0 … {n - 1})"
             )
-        syms[s] = _symmetries_of(arr, f"{folder / 'rotations.npz'} [{s}]")
+        syms[s], transposed = _symmetries_of(arr, f"{folder / 'rotations.npz'} [{s}]")
         labels.append(np.full(n, SYMSOL_LABELS.index(s), dtype=np.int64))
-        rots.append(np.asarray(arr[:, 0], dtype=np.float32))
+        R0 = np.asarray(arr[:, 0], dtype=np.float32)
+        rots.append(R0.swapaxes(-1, -2) if transposed else R0)
         files += [have[i] for i in range(n)]
     return _Split(np.concatenate(labels), np.concatenate(rots), files, None, None, syms, str(folder))
 
@@ -199,7 +212,7 @@ def _tfds_split(folder: Path, split: str, shapes: Sequence[str]) -> _Split:
     except TFRecordError as e:
         raise OfficialDataError(str(e)) from None
     wanted = {SYMSOL_LABELS.index(s) for s in shapes}
-    labels, rots, where, syms = [], [], [], {}
+    labels, rots, where, first = [], [], [], {}
     for k, shard in enumerate(shards):
         for j in range(len(shard)):
             rec = f"{shard.path} record {j}"
@@ -222,23 +235,32 @@ def _tfds_split(folder: Path, split: str, shapes: Sequence[str]) -> _Split:
             if label not in wanted:
                 continue
             shape = SYMSOL_LABELS[label]
-            if shape not in syms:
+            if len(first.setdefault(shape, [])) < 8:  # the first images' equivalents: the set, and its side
                 eq = np.asarray(ex.get("rotations_equivalent", np.zeros(0)), dtype=np.float32)
-                if eq.size == 0 or eq.size % 9:
-                    raise OfficialDataError(f"{rec}: rotations_equivalent has {eq.size} values, not K × 9")
-                syms[shape] = _symmetries_of(eq.reshape(1, -1, 3, 3), rec)
+                if eq.size == 0 or eq.size % 9 or (first[shape] and eq.size != first[shape][0].size):
+                    raise OfficialDataError(
+                        f"{rec}: rotations_equivalent has {eq.size} values, not K × 9 as the others"
+                    )
+                first[shape].append(eq.reshape(-1, 3, 3))
             labels.append(label)
             rots.append(R)
             where.append((k, j))
-    missing = [s for s in shapes if s not in syms]
+    missing = [s for s in shapes if s not in first]
     if missing:
         raise OfficialDataError(
             f"{folder}: the {split} shards hold no {', '.join(missing)} (set data.shapes to a subset)"
         )
+    syms = {}
+    R_all, lab = np.stack(rots), np.asarray(labels)
+    for shape, eqs in first.items():
+        syms[shape], transposed = _symmetries_of(np.stack(eqs), f"{folder} [{shape}]")
+        if transposed:
+            sel = lab == SYMSOL_LABELS.index(shape)
+            R_all[sel] = R_all[sel].swapaxes(-1, -2)
     order = np.lexsort((np.arange(len(labels)), np.asarray(labels)))  # by shape, file order within
     return _Split(
         np.asarray(labels, dtype=np.int64)[order],
-        np.stack(rots)[order],
+        R_all[order],
         None,
         shards,
         np.asarray(where, dtype=np.int64).reshape(-1, 2)[order],
@@ -456,9 +478,15 @@ class SymsolOfficialDataModule(LoaderPredictions, L.LightningDataModule):
 
     def describe(self) -> str:
         what = "unpacked symsol_dataset.zip" if self.layout == "zip" else "tfds symmetric_solids"
-        return (
+        line = (
             f"official SYMSOL ({what} in {self.root}): shapes {', '.join(self.shapes)}, {self.image_size} px"
         )
+        off = {s: a for s, a in self.symmetry_agreement().items() if a > 0.5}
+        if off:  # the scorer uses the file's sets; posediff's own shape-specific heads assume its frames
+            worst = ", ".join(f"{s} {a:.1f}°" for s, a in off.items())
+            line += (f"; the file's symmetries are not posediff's groups in posediff's frames ({worst}): "
+                     "encoder.rotation_head=invariant and module.symmetry_fold assume posediff's")  # fmt: skip
+        return line
 
     def prediction_input(self, index: int) -> dict[str, Any]:
         s = self.test_sample(index)

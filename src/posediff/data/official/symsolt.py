@@ -224,7 +224,7 @@ class _Records:
                 # the ground truth's position in the list is theirs to choose: put it first
                 k0 = int(np.argmax(np.einsum("kij,ij->k", R_eq, R)))
                 R_eq = np.concatenate([R_eq[k0 : k0 + 1], np.delete(R_eq, k0, 0)])
-                syms[shape] = _symmetries_of(R_eq[None], where)
+                syms[shape] = _symmetries_of(R_eq[None], where)[0]
             f = folder / image
             files.append(f)
             labels.append(label)
