@@ -132,6 +132,16 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
             "group=se3",
         ],  # fmt: skip
     ),
+    "quickstart_area_coverage": (
+        "the quickstart now with the apparent size measured by edge coverage (encoder.area_estimate=coverage)",
+        [
+            "data.batch_size=32",
+            "module.num_noisy=32",
+            "encoder.depth_cue=size_head",
+            "module.symmetry_fold=true",
+            "encoder.area_estimate=coverage",
+        ],  # fmt: skip
+    ),
     "quickstart_render": (
         "rendered on the fly, 8000 poses per shape: no image repeats in 2500 steps (quickstart: 10 000 fixed)",
         ["data.mode=render", "data.n_per_shape_train=8000"],

@@ -229,3 +229,42 @@ def test_size_head_leaves_the_locator_depth_regressed() -> None:
     assert_close(out.located[:, 2], torch.zeros(2))
     z = out.translation[:, 2] + SCENE_DISTANCE
     assert_close(z[0] / z[1], torch.tensor(2.0), rtol=0.02, atol=0.0)
+
+
+def _shaded_polygon(size: int = 128, supersample: int = 8) -> tuple[torch.Tensor, float]:
+    """A hexagon made of two faces of different shade (0.3 and 0.8) on black, each pixel the mean of
+    supersample² sub-pixels (anti-aliased edges), and its exact area in pixels."""
+    n = size * supersample
+    yy, xx = torch.meshgrid(torch.arange(n) + 0.5, torch.arange(n) + 0.5, indexing="ij")
+    x, y = xx / supersample - size / 2, yy / supersample - size / 2
+    R = 20.3
+    ang = torch.arange(6) * math.pi / 3 + 0.2
+    vx, vy = R * torch.cos(ang), R * torch.sin(ang)
+    inside = torch.ones_like(x, dtype=torch.bool)
+    for k in range(6):  # convex: on the left of every edge
+        ex, ey = vx[(k + 1) % 6] - vx[k], vy[(k + 1) % 6] - vy[k]
+        inside &= ex * (y - vy[k]) - ey * (x - vx[k]) >= 0
+    shade = torch.where(y > 0.3 * x, 0.8, 0.3)
+    fine = torch.where(inside, shade, 0.0)
+    grey = fine.reshape(size, supersample, size, supersample).mean((1, 3))
+    area = 1.5 * math.sqrt(3) * R**2
+    return grey, area
+
+
+def test_coverage_area_counts_edge_pixels_by_their_covered_fraction() -> None:
+    """Against an exactly known area with anti-aliased edges and two shades: the coverage estimate is
+    within 0.5 % (edge pixels by grey / inner shade); the threshold estimate counts partly covered
+    pixels whole and is percents too large."""
+    from posediff.nn.pose_encoder import coverage_area
+
+    grey, area = _shaded_polygon()
+    got = float(coverage_area(grey[None])) * grey.numel()
+    assert abs(got / area - 1.0) < 0.005
+    threshold = float((grey / 0.05).clamp(0, 1).sum())
+    assert threshold / area - 1.0 > 0.02
+    enc = PoseEncoder(
+        image_size=128, crop_size=64, out_dim=16, depth_cue="size_head", area_estimate="coverage"
+    )
+    assert enc.area_estimate == "coverage"
+    with pytest.raises(ValueError, match="unknown area_estimate 'exact'; choose one of: threshold, coverage"):
+        PoseEncoder(image_size=128, crop_size=64, depth_cue="size_head", area_estimate="exact")
