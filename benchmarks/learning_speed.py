@@ -142,6 +142,17 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
             "encoder.area_estimate=coverage",
         ],  # fmt: skip
     ),
+    "quickstart_depth_embedding": (
+        "the quickstart now with the depth offset also from an MLP of the invariant embeddings "
+        "(encoder.depth_head=embedding)",
+        [
+            "data.batch_size=32",
+            "module.num_noisy=32",
+            "encoder.depth_cue=size_head",
+            "module.symmetry_fold=true",
+            "encoder.depth_head=embedding",
+        ],  # fmt: skip
+    ),
     "quickstart_render": (
         "rendered on the fly, 8000 poses per shape: no image repeats in 2500 steps (quickstart: 10 000 fixed)",
         ["data.mode=render", "data.n_per_shape_train=8000"],

@@ -268,3 +268,27 @@ def test_coverage_area_counts_edge_pixels_by_their_covered_fraction() -> None:
     assert enc.area_estimate == "coverage"
     with pytest.raises(ValueError, match="unknown area_estimate 'exact'; choose one of: threshold, coverage"):
         PoseEncoder(image_size=128, crop_size=64, depth_cue="size_head", area_estimate="exact")
+
+
+def test_depth_head_from_the_embedding_starts_as_the_linear_head_and_learns() -> None:
+    """``depth_head="embedding"``: an MLP of the (detached) invariant embeddings adds to the depth
+    offset; zero-initialised, the anchor is the linear head's; it gets gradients, the embedding none
+    through it."""
+    torch.manual_seed(0)
+    enc = PoseEncoder(image_size=128, crop_size=64, out_dim=16, crop_jitter=0.0, depth_cue="size_head",
+                      rotation_head="invariant", depth_head="embedding").train()  # fmt: skip
+    images = _disk_images([12.0, 20.0])
+    pose = torch.eye(4).repeat(2, 1, 1)
+    out = enc(images, pose=pose)
+    mlp, enc.depth_mlp = enc.depth_mlp, None
+    plain = enc(images, pose=pose)
+    enc.depth_mlp = mlp
+    assert_close(out.translation, plain.translation)
+    out.translation[:, 2].sum().backward()
+    assert float(mlp[-1].weight.grad.abs().sum()) > 0
+    with pytest.raises(
+        ValueError, match="depth_head=embedding needs rotation_head=invariant and a depth_cue"
+    ):
+        PoseEncoder(image_size=128, crop_size=64, depth_cue="size_head", depth_head="embedding")
+    with pytest.raises(ValueError, match="unknown depth_head 'mlp'; choose one of: linear, embedding"):
+        PoseEncoder(image_size=128, crop_size=64, depth_cue="size_head", depth_head="mlp")

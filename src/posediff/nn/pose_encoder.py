@@ -54,6 +54,8 @@ ROTATION_HEADS = ("6d", "invariant")
 DEPTH_CUES = (None, "size", "size_head")
 #: how the depth cue measures the object's image area (PoseEncoder ``area_estimate``)
 AREA_ESTIMATES = ("threshold", "coverage")
+#: what predicts the depth offset from the apparent size (PoseEncoder ``depth_head``)
+DEPTH_HEADS = ("linear", "embedding")
 
 
 def coverage_area(grey: Tensor, background_level: float = 0.05) -> Tensor:
@@ -223,6 +225,11 @@ class PoseEncoder(nn.Module):
             noise of ~0.5 %); ``"coverage"`` — pixels away from the background count whole, each edge
             pixel by its grey level over its brightest inner neighbour's, its covered fraction
             (0.997 ± 0.004 of the true area on SYMSOL-T; :func:`coverage_area`).
+        depth_head: the depth offset δ (with a ``depth_cue``): ``"linear"`` — the pose head's third
+            translation output, linear in the crop's feature; ``"embedding"`` (with
+            ``rotation_head="invariant"``) — plus a small MLP of the head's own (detached) invariant
+            embeddings, shape logits and ``log_size``: the apparent area at a given depth depends on
+            the orientation only through what the symmetries leave of it, which the embedding is.
         rotation_head: ``"6d"`` (a rotation by Gram–Schmidt, trained by ``min_S ‖R̂ − R·S‖²``) or
             ``"invariant"`` (beyond the paper, SYMSOL shapes): per shape the symmetry-invariant
             embedding φ(R_allo) of :func:`~posediff.symmetry.invariant_embedding` plus shape logits,
@@ -255,6 +262,7 @@ class PoseEncoder(nn.Module):
         depth_cue: str | None = None,
         background_level: float = 0.05,
         area_estimate: str = "threshold",
+        depth_head: str = "linear",
         rotation_head: str = "6d",
         shapes: Sequence[str] = SHAPES,
         embedding_scale: str = "raw",
@@ -289,6 +297,14 @@ class PoseEncoder(nn.Module):
             )
         self.depth_cue, self.background_level = depth_cue, float(background_level)
         self.area_estimate = area_estimate
+        if depth_head not in DEPTH_HEADS:
+            raise ValueError(f"unknown depth_head {depth_head!r}; choose one of: {', '.join(DEPTH_HEADS)}")
+        if depth_head == "embedding" and (rotation_head != "invariant" or depth_cue is None):
+            raise ValueError(
+                "depth_head=embedding needs rotation_head=invariant and a depth_cue (size or size_head); "
+                "otherwise set encoder.depth_head=linear"
+            )
+        self.depth_head = depth_head
         if depth_cue is not None:  # the running mean of log a over training images (NaN: none seen yet)
             self.register_buffer("log_area_mean", torch.tensor(float("nan")))
         #: decode the invariant head's rotation in training too (the anchored denoiser needs it)
@@ -339,6 +355,14 @@ class PoseEncoder(nn.Module):
             self.pose_head.bias.zero_()
             if rotation_head == "6d":
                 self.pose_head.bias[:6] = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+        self.depth_mlp: nn.Module | None = None
+        if depth_head == "embedding":
+            self.depth_mlp = nn.Sequential(
+                nn.Linear(width + 1, 64), nn.SiLU(), nn.Linear(64, 64), nn.SiLU(), nn.Linear(64, 1)
+            )
+            with torch.no_grad():  # starts as the linear head alone
+                self.depth_mlp[-1].weight.zero_()
+                self.depth_mlp[-1].bias.zero_()
         self.locator = (
             _Locator(self.image_size, locator_width, self.focal, self.scene_distance, depth_cue == "size")
             if self.crop_size is not None
@@ -492,7 +516,13 @@ class PoseEncoder(nn.Module):
             offset = head[:, w : w + 3]
             if log_size is not None and crop_translation is not None:
                 z0 = self.scene_distance
-                z_cam = z0 * torch.exp(0.5 * (log_size.to(offset.dtype) + offset[:, 2]))
+                delta = offset[:, 2]
+                if self.depth_mlp is not None:
+                    cue = torch.cat(
+                        [head[:, : self.rotation_width].detach(), log_size[:, None].to(head.dtype)], 1
+                    )
+                    delta = delta + self.depth_mlp(cue)[:, 0]
+                z_cam = z0 * torch.exp(0.5 * (log_size.to(offset.dtype) + delta))
                 along_ray = crop_translation[:, :2] * (z_cam / (crop_translation[:, 2] + z0))[:, None]
                 translation = torch.cat([along_ray + offset[:, :2], (z_cam - z0)[:, None]], dim=1)
             else:
