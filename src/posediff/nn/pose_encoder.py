@@ -35,6 +35,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..symmetry import (
@@ -64,8 +65,6 @@ def coverage_area(grey: Tensor, background_level: float = 0.05) -> Tensor:
     one with no background among its 8 neighbours counts whole; an edge pixel counts by its covered
     fraction, its grey level over the brightest inner pixel within 1 (else 2) pixels — an
     antialiased edge pixel's value is its coverage times the shade of the face it shows."""
-    import torch.nn.functional as F
-
     g = grey[:, None]
     fg = (g > 0.5 * background_level).to(g.dtype)
     near_background = F.max_pool2d(1.0 - fg, 3, 1, 1)

@@ -3,8 +3,8 @@
 and the paper authors' SYMSOL-T (:mod:`.symsolt`, its ``annotations.gz`` through :mod:`.unpickle`,
 which runs nothing)."""
 
+from .base import OfficialDataError, OfficialDataModule, padded_symmetries
 from .symsol import (
-    OfficialDataError,
     SymsolOfficialDataModule,
     SymsolOfficialDataset,
     decode_png,
@@ -16,6 +16,7 @@ from .unpickle import PlainUnpickler, UnsafePickleError, load_plain_pickle
 
 __all__ = [
     "OfficialDataError",
+    "OfficialDataModule",
     "PlainUnpickler",
     "SymsolOfficialDataModule",
     "SymsolOfficialDataset",
@@ -28,6 +29,7 @@ __all__ = [
     "find_tfds_folder",
     "load_plain_pickle",
     "model_frame",
+    "padded_symmetries",
     "parse_example",
     "quaternion_wxyz_to_matrix",
     "to_posediff",

@@ -37,15 +37,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import lightning as L
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import Dataset
 
-from ...lie import LieGroup, get_group
-from ...symmetry import SHAPES, SYMSOL_LABELS, SymmetrySet
-from ..protocol import LoaderPredictions
-from ..resumable import ResumableDataLoader, eval_loader
+from ...lie import LieGroup
+from ...symmetry import SHAPES, SYMSOL_LABELS
+from .base import OfficialDataError, OfficialDataModule, padded_symmetries
 from .tfrecord import TFRecordError, TFRecordFile, parse_example
 
 SPLITS = ("train", "test")
@@ -53,14 +51,10 @@ _TFDS_NAME = "symmetric_solids"
 _IMAGE = re.compile(r"^(?P<shape>[A-Za-z]+)_(?P<index>\d+)\.png$")
 
 
-class OfficialDataError(ValueError):
-    """An official dataset folder or file posediff cannot read (one line naming it)."""
-
-
 # ----------------------------------------------------------------------------- images
-def decode_png(data: bytes | Path, size: int | None, where: str) -> torch.Tensor:
-    """A PNG (bytes or a file) as ``(3, size, size)`` float32 in [0, 1] (resized with antialiasing
-    when ``size`` differs; ``None``: as stored); a damaged or truncated file → one line naming it."""
+def read_png(data: bytes | Path, size: int | None, where: str) -> np.ndarray:
+    """A PNG (bytes or a file) as ``(size, size, 3)`` uint8 RGB (resized with antialiasing when
+    ``size`` differs; ``None``: as stored); a damaged or truncated file → one line naming it."""
     import io
 
     from PIL import Image, UnidentifiedImageError
@@ -73,7 +67,12 @@ def decode_png(data: bytes | Path, size: int | None, where: str) -> torch.Tensor
         raise OfficialDataError(f"{where}: not a readable image ({e})") from None
     if size is not None and rgb.size != (size, size):
         rgb = rgb.resize((size, size), Image.Resampling.BILINEAR, reducing_gap=None)
-    arr = np.asarray(rgb, dtype=np.uint8)
+    return np.asarray(rgb, dtype=np.uint8)
+
+
+def decode_png(data: bytes | Path, size: int | None, where: str) -> torch.Tensor:
+    """:func:`read_png` as ``(3, size, size)`` float32 in [0, 1]."""
+    arr = read_png(data, size, where)
     return torch.from_numpy(np.ascontiguousarray(arr.transpose(2, 0, 1))).float().div_(255.0)
 
 
@@ -335,8 +334,13 @@ class SymsolOfficialDataset(Dataset):
         }
 
 
-class SymsolOfficialDataModule(LoaderPredictions, L.LightningDataModule):
+class SymsolOfficialDataModule(OfficialDataModule):
     """The official SYMSOL files (module docstring); ``conf/data/symsol_official.yaml``."""
+
+    labels = SYMSOL_LABELS
+    dataset_name = "SYMSOL"
+    #: evaluations report the ground truth's log density by default (SYMSOL's ranking metric)
+    log_likelihood_default = True
 
     def __init__(
         self,
@@ -352,129 +356,29 @@ class SymsolOfficialDataModule(LoaderPredictions, L.LightningDataModule):
         max_val: int = 1000,
         seed: int = 0,
     ) -> None:
-        super().__init__()
-        if not root:
-            raise OfficialDataError(
-                "data.root is not set: point it at the unpacked symsol_dataset.zip or a prepared "
-                "tensorflow_datasets/symmetric_solids/1.0.0 folder"
-            )
-        self.group = get_group(group) if isinstance(group, str) else group
+        super().__init__(
+            root,
+            "the unpacked symsol_dataset.zip or a prepared tensorflow_datasets/symmetric_solids/1.0.0 folder",
+            shapes=shapes, image_size=image_size, n_per_shape_test=n_per_shape_test, batch_size=batch_size,
+            num_workers=num_workers, group=group, val_fraction=val_fraction, max_val=max_val, seed=seed,
+        )  # fmt: skip
         if self.group.name != "so3":
             raise OfficialDataError(
                 f"SYMSOL images carry rotations only: use group=so3 (got group={self.group.name})"
             )
-        unknown = [s for s in shapes if s not in SYMSOL_LABELS]
-        if unknown or not shapes:
-            raise OfficialDataError(
-                f"unknown SYMSOL shapes {unknown or '[]'}; available: {', '.join(SYMSOL_LABELS)}"
-            )
-        if not 0.0 < float(val_fraction) < 1.0 or int(max_val) < 1:
-            raise OfficialDataError(
-                f"data.val_fraction must be in (0, 1) and data.max_val ≥ 1, got {val_fraction}, {max_val}"
-            )
-        self.root = Path(os.path.expanduser(str(root)))
-        self.shapes = tuple(shapes)
-        self.image_size = int(image_size)
-        self.n_per_shape_test = None if n_per_shape_test is None else int(n_per_shape_test)
-        self.batch_size, self.num_workers, self.seed = int(batch_size), int(num_workers), int(seed)
-        self.val_fraction, self.max_val = float(val_fraction), int(max_val)
         self.layout = layout(self.root)
-        self._splits: dict[str, _Split] = {}
-        self.train: Dataset | None = None
-        self.val: Dataset | None = None
-        self.test: Dataset | None = None
-        #: shape → the file's symmetries as a :class:`~posediff.symmetry.SymmetrySet` (the scorer's)
-        self.symmetry_sets: dict[str, SymmetrySet] = {}
 
-    #: evaluations report the ground truth's log density by default (SYMSOL's ranking metric)
-    log_likelihood_default = True
+    def _read(self, split: str) -> _Split:
+        if self.layout == "zip":
+            return _zip_split(self.root, split, self.shapes)
+        folder = find_tfds_folder(self.root)
+        assert folder is not None
+        return _tfds_split(folder, split, self.shapes)
 
-    def _split(self, split: str) -> _Split:
-        if split not in self._splits:
-            if self.layout == "zip":
-                sp = _zip_split(self.root, split, self.shapes)
-            else:
-                folder = find_tfds_folder(self.root)
-                assert folder is not None
-                sp = _tfds_split(folder, split, self.shapes)
-            self._splits[split] = sp
-            for s, S in sp.symmetries.items():
-                self.symmetry_sets.setdefault(s, SymmetrySet.from_transforms(S, name=f"{s} ({split} file)"))
-        return self._splits[split]
-
-    def _padded(self, sp: _Split) -> tuple[torch.Tensor, torch.Tensor]:
-        """Every label's symmetry set padded to the largest (identity rows, masked out)."""
-        size = max(len(S) for S in sp.symmetries.values())
-        sym = torch.eye(3).repeat(len(SYMSOL_LABELS), size, 1, 1)
-        mask = torch.zeros(len(SYMSOL_LABELS), size, dtype=torch.bool)
-        for s, S in sp.symmetries.items():
-            k = SYMSOL_LABELS.index(s)
-            sym[k, : len(S)] = torch.from_numpy(S)
-            mask[k, : len(S)] = True
-        return sym, mask
-
-    def _dataset(self, sp: _Split, indices: np.ndarray) -> SymsolOfficialDataset:
-        return SymsolOfficialDataset(sp, indices, self.image_size, *self._padded(sp))
-
-    def setup(self, stage: str | None = None) -> None:
-        if stage in (None, "fit", "validate") and self.train is None:
-            sp = self._split("train")
-            train, val = [], []
-            for s in self.shapes:
-                idx = np.flatnonzero(sp.label == SYMSOL_LABELS.index(s))
-                n_val = min(
-                    max(1, round(self.val_fraction * len(idx))),
-                    self.max_val // len(self.shapes),
-                    len(idx) - 1,
-                )
-                if n_val < 1:
-                    raise OfficialDataError(
-                        f"{sp.source}: one {s} training image: nothing to hold out for validation"
-                    )
-                train.append(idx[:-n_val])
-                val.append(idx[-n_val:])
-            self.train = self._dataset(sp, np.concatenate(train))
-            self.val = self._dataset(sp, np.concatenate(val))
-        if stage in (None, "fit", "validate", "test", "predict") and self.test is None:
-            sp = self._split("test")
-            keep = []
-            for s in self.shapes:
-                idx = np.flatnonzero(sp.label == SYMSOL_LABELS.index(s))
-                keep.append(idx if self.n_per_shape_test is None else idx[: self.n_per_shape_test])
-            self.test = self._dataset(sp, np.concatenate(keep))
-
-    def symmetry_agreement(self) -> dict[str, float]:
-        """Per SYMSOL I shape read, the largest angle (degrees) from a member of the file's symmetry
-        set to posediff's group (:mod:`posediff.symmetry`; cone / cylinder on the file's own grid,
-        so measured exactly): ~0 when the file's object frames are posediff's."""
-        out = {}
-        for s, sset in self.symmetry_sets.items():
-            if s in SHAPES:
-                mine = SymmetrySet.from_shape(s)
-                R = torch.from_numpy(sset.rotations_finite)
-                err = mine.min_angle_deg(R[:, None], torch.eye(3, dtype=R.dtype).expand(len(R), 3, 3))
-                out[s] = float(torch.as_tensor(err).max())
-        return out
-
-    def train_dataloader(self) -> DataLoader:
-        assert self.train is not None, "call setup('fit') first"
-        return ResumableDataLoader(
-            self.train,
-            batch_size=self.batch_size,
-            shuffle=True,
-            seed=self.seed,
-            drop_last=True,
-            num_workers=self.num_workers,
-            persistent_workers=False,
+    def _dataset(self, records: _Split, indices: np.ndarray) -> SymsolOfficialDataset:
+        return SymsolOfficialDataset(
+            records, indices, self.image_size, *padded_symmetries(records.symmetries, SYMSOL_LABELS)
         )
-
-    def val_dataloader(self) -> DataLoader:
-        assert self.val is not None, "call setup('fit') first"
-        return eval_loader(self.val, batch_size=self.batch_size, num_workers=self.num_workers)
-
-    def test_dataloader(self) -> DataLoader:
-        assert self.test is not None, "call setup() first"
-        return eval_loader(self.test, batch_size=self.batch_size, num_workers=self.num_workers)
 
     def describe(self) -> str:
         what = "unpacked symsol_dataset.zip" if self.layout == "zip" else "tfds symmetric_solids"
@@ -511,4 +415,5 @@ __all__ = [
     "decode_png",
     "find_tfds_folder",
     "layout",
+    "read_png",
 ]

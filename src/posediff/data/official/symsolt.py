@@ -35,24 +35,21 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import lightning as L
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import Dataset
 
-from ...lie import LieGroup, get_group
-from ...symmetry import GOLDEN_RATIO, SHAPES, SymmetrySet
-from ..protocol import LoaderPredictions
-from ..resumable import ResumableDataLoader, eval_loader
+from ...lie import LieGroup
+from ...symmetry import GOLDEN_RATIO, SHAPES
 from ..symsol.datamodule import to_sample
 from ..symsol.render import SCENE_DISTANCE, intrinsics
 from ..symsol.shapes import SHAPE_SIZE
-from .symsol import OfficialDataError, _symmetries_of, decode_png
+from .base import OfficialDataError, OfficialDataModule, padded_symmetries
+from .symsol import _symmetries_of, read_png
 from .unpickle import UnsafePickleError, load_plain_pickle
 
 ANNOTATIONS = "annotations.gz"
@@ -240,6 +237,7 @@ class _Records:
             raise OfficialDataError(f"{absent}: missing (named by {path}); the folder is incomplete")
         order = np.lexsort((np.arange(len(labels)), np.asarray(labels)))
         self.path = path
+        self.source = str(path)
         self.files = [files[k] for k in order]
         self.label = np.asarray(labels, dtype=np.int64)[order]
         self.rotation = np.stack(Rs)[order].astype(np.float32)
@@ -272,19 +270,20 @@ class SymsoltOfficialDataset(Dataset):
         i = int(self.indices[n])
         r = self.records
         f = r.files[i]
-        image = decode_png(f, self.image_size, str(f))
-        rgb = (image.permute(1, 2, 0).numpy() * 255.0).round().astype(np.uint8)
+        rgb = read_png(f, self.image_size, str(f))
         t_cam = r.translation[i].astype(np.float64) + np.array([0.0, 0.0, SCENE_DISTANCE])
         label = int(r.label[i])
         out = to_sample(rgb, r.rotation[i], t_cam, label, self.K, i, rotation_only=self.rotation_only)
-        out["image"] = image
         out["symmetries"], out["symmetries_mask"] = self.sym[label], self.mask[label]
         return out
 
 
-class SymsoltOfficialDataModule(LoaderPredictions, L.LightningDataModule):
+class SymsoltOfficialDataModule(OfficialDataModule):
     """The authors' SYMSOL-T (module docstring); ``conf/data/symsolt_official.yaml``. Validation holds
     out the last ``val_fraction`` of each shape's training records (training skips them)."""
+
+    labels = SHAPES
+    dataset_name = "SYMSOL-T"
 
     def __init__(
         self,
@@ -301,109 +300,30 @@ class SymsoltOfficialDataModule(LoaderPredictions, L.LightningDataModule):
         max_val: int = 1000,
         seed: int = 0,
     ) -> None:
-        super().__init__()
-        if not root:
-            raise OfficialDataError(
-                "data.root is not set: point it at the authors' SYMSOL-T folder (train-45k/, test-5k/)"
-            )
-        self.root = Path(os.path.expanduser(str(root)))
+        super().__init__(
+            root,
+            "the authors' SYMSOL-T folder (train-45k/, test-5k/)",
+            shapes=shapes, image_size=image_size, n_per_shape_test=n_per_shape_test, batch_size=batch_size,
+            num_workers=num_workers, group=group, val_fraction=val_fraction, max_val=max_val, seed=seed,
+        )  # fmt: skip
         if not self.root.is_dir():
             raise OfficialDataError(
                 f"{self.root}: no such folder — point data.root at the authors' SYMSOL-T folder holding "
                 "train-45k/ and test-5k/ (README, 'The benchmarks' own files')"
             )
-        self.group = get_group(group) if isinstance(group, str) else group
         if self.group.name not in ("so3", "se3", "r3so3"):
             raise OfficialDataError(
                 f"SYMSOL-T poses need a 3-D rotation group (so3, se3, r3so3), not {self.group.name!r}"
             )
-        unknown = [s for s in shapes if s not in SHAPES]
-        if unknown or not shapes:
-            raise OfficialDataError(
-                f"unknown SYMSOL-T shapes {unknown or '[]'}; available: {', '.join(SHAPES)}"
-            )
-        if not 0.0 < float(val_fraction) < 1.0 or int(max_val) < 1:
-            raise OfficialDataError(
-                f"data.val_fraction must be in (0, 1) and data.max_val ≥ 1, got {val_fraction}, {max_val}"
-            )
-        self.shapes, self.image_size, self.color = tuple(shapes), int(image_size), bool(color)
-        self.n_per_shape_test = None if n_per_shape_test is None else int(n_per_shape_test)
-        self.batch_size, self.num_workers, self.seed = int(batch_size), int(num_workers), int(seed)
-        self.val_fraction, self.max_val = float(val_fraction), int(max_val)
+        self.color = bool(color)
         self.rotation_only = self.group.matrix_dim == 3
-        self._records: dict[str, _Records] = {}
-        self.train: Dataset | None = None
-        self.val: Dataset | None = None
-        self.test: Dataset | None = None
-        #: shape → the file's symmetries (converted to posediff's model frame), the scorer's
-        self.symmetry_sets: dict[str, SymmetrySet] = {}
 
-    def records(self, split: str) -> _Records:
-        if split not in self._records:
-            r = _Records(_split_folder(self.root, split), self.shapes, self.color)
-            self._records[split] = r
-            for s, S in r.symmetries.items():
-                self.symmetry_sets.setdefault(s, SymmetrySet.from_transforms(S, name=f"{s} ({split} file)"))
-        return self._records[split]
+    def _read(self, split: str) -> _Records:
+        return _Records(_split_folder(self.root, split), self.shapes, self.color)
 
-    def _dataset(self, r: _Records, indices: np.ndarray) -> SymsoltOfficialDataset:
-        size = max(len(S) for S in r.symmetries.values())
-        sym = torch.eye(3).repeat(len(SHAPES), size, 1, 1)
-        mask = torch.zeros(len(SHAPES), size, dtype=torch.bool)
-        for s, S in r.symmetries.items():
-            k = SHAPES.index(s)
-            sym[k, : len(S)] = torch.from_numpy(S)
-            mask[k, : len(S)] = True
-        return SymsoltOfficialDataset(r, indices, self.image_size, self.rotation_only, sym, mask)
-
-    def setup(self, stage: str | None = None) -> None:
-        if stage in (None, "fit", "validate") and self.train is None:
-            r = self.records("train")
-            train, val = [], []
-            for s in self.shapes:
-                idx = np.flatnonzero(r.label == SHAPES.index(s))
-                n_val = min(
-                    max(1, round(self.val_fraction * len(idx))),
-                    self.max_val // len(self.shapes),
-                    len(idx) - 1,
-                )
-                if n_val < 1:
-                    raise OfficialDataError(f"{r.path}: one {s} record: nothing to hold out for validation")
-                train.append(idx[:-n_val])
-                val.append(idx[-n_val:])
-            self.train = self._dataset(r, np.concatenate(train))
-            self.val = self._dataset(r, np.concatenate(val))
-        if stage in (None, "fit", "validate", "test", "predict") and self.test is None:
-            r = self.records("test")
-            keep = [np.flatnonzero(r.label == SHAPES.index(s)) for s in self.shapes]
-            if self.n_per_shape_test is not None:
-                keep = [k[: self.n_per_shape_test] for k in keep]
-            self.test = self._dataset(r, np.concatenate(keep))
-
-    def symmetry_agreement(self) -> dict[str, float]:
-        """Per shape read, the largest angle (degrees) from a member of the file's symmetry set (in
-        posediff's frame) to posediff's group: ~0 when the frame conversion is right."""
-        out = {}
-        for s, sset in self.symmetry_sets.items():
-            R = torch.from_numpy(sset.rotations_finite)
-            err = SymmetrySet.from_shape(s).min_angle_deg(
-                R[:, None], torch.eye(3, dtype=R.dtype).expand(len(R), 3, 3)
-            )
-            out[s] = float(torch.as_tensor(err).max())
-        return out
-
-    def train_dataloader(self) -> DataLoader:
-        assert self.train is not None, "call setup('fit') first"
-        return ResumableDataLoader(self.train, batch_size=self.batch_size, shuffle=True, seed=self.seed,
-                                   drop_last=True, num_workers=self.num_workers, persistent_workers=False)  # fmt: skip
-
-    def val_dataloader(self) -> DataLoader:
-        assert self.val is not None, "call setup('fit') first"
-        return eval_loader(self.val, batch_size=self.batch_size, num_workers=self.num_workers)
-
-    def test_dataloader(self) -> DataLoader:
-        assert self.test is not None, "call setup() first"
-        return eval_loader(self.test, batch_size=self.batch_size, num_workers=self.num_workers)
+    def _dataset(self, records: _Records, indices: np.ndarray) -> SymsoltOfficialDataset:
+        sym, mask = padded_symmetries(records.symmetries, SHAPES)
+        return SymsoltOfficialDataset(records, indices, self.image_size, self.rotation_only, sym, mask)
 
     def describe(self) -> str:
         return f"the authors' SYMSOL-T ({self.root}): shapes {', '.join(self.shapes)}, {self.image_size} px"
