@@ -48,7 +48,7 @@ WHOLE = ["encoder.crop_size=null"]
 SIXD = ["encoder.rotation_head=6d"]
 PAPER_INPUT = ["module.anchor=false", "module.aux_weight=0.0"]
 DIFFUSION_ONLY = ["module.aux_weight=0.0"]
-REGRESSION = ["module._target_=posediff.regression.PoseRegressionModule", "module.denoiser=null"]
+REGRESSION = ["module._target_=posediff.models.PoseRegressionModule", "module.denoiser=null"]
 OLD = ["module.lr=3e-4", "module.lr_final=3e-5", "schedule.noise_end=1.0"]
 #: the quickstart before the symmetry-fold study (16 images x 64 noisy poses, depth regressed, unfolded):
 #: the base every variant below was measured against, so each variant pins it (its own overrides win)
@@ -159,7 +159,7 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     ),
     "iterative_regression": (
         "locate-then-crop, the iterative-regression baseline (Table 2): the pose head refined 4 times by the MLP",
-        ["module._target_=posediff.regression.PoseRegressionModule", "+module.iterations=4"],
+        ["module._target_=posediff.models.PoseRegressionModule", "+module.iterations=4"],
     ),
     "regression_6d": (
         "locate-then-crop, the regression baseline, 6-D head (min over the symmetries)",

@@ -56,7 +56,7 @@ from torch import Tensor, nn
 from posediff._io import atomic_write_json
 from posediff.diffusion import ConcentratedGaussian, Diffusion, LinearSchedule, Sampler
 from posediff.lie import SE3, SO3
-from posediff.module import PoseDiffusionModule
+from posediff.models import PoseDiffusionModule
 from posediff.nn import MLPDenoiser
 
 warnings.filterwarnings("ignore")

@@ -1,7 +1,7 @@
 """The long CPU run of issue 27: ``posediff fit +experiment=symsolt_cpu_long`` on R³×SO(3), SE(3) and the regression baseline, its
 learning curve on the whole SYMSOL-T test split, and the plot against the paper's Table 2.
 
-Each run writes ``<run>/test_curve.json`` as it trains (``posediff.callbacks.TestCurve``: every 2500
+Each run writes ``<run>/test_curve.json`` as it trains (``posediff.training.callbacks.TestCurve``: every 2500
 steps, the whole test split with one hypothesis per image as the authors, and 20 images per shape with
 200 hypotheses for coverage). This script starts the runs (``--train``; in parallel, one CPU thread
 each, so both groups see the same machine) or only collects runs already made (``--runs``), and writes
@@ -59,7 +59,7 @@ RUNS: dict[str, list[str]] = {
     "r3so3": ["group=r3so3", *BEFORE_FOLD],
     "se3": ["group=se3", *BEFORE_FOLD],
     "regression": [
-        "module._target_=posediff.regression.PoseRegressionModule",
+        "module._target_=posediff.models.PoseRegressionModule",
         "module.denoiser=null",
         *BEFORE_FOLD,
     ],

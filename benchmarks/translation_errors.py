@@ -22,7 +22,7 @@ def measure(ckpt: str, per_shape: int, num_samples: int, num_steps: int, seed: i
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
-    from posediff.checkpoint import load_checkpoint
+    from posediff.models import load_checkpoint
     from posediff.symmetry import SHAPES
 
     m = load_checkpoint(ckpt)

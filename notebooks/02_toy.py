@@ -59,7 +59,7 @@ from posediff.diffusion import (
 from posediff.diffusion.igso3 import eps_from_sigma, igso3_log_density
 from posediff.lie import SO3
 from posediff.metrics import mode_coverage, rotation_spread_deg
-from posediff.module import PoseDiffusionModule
+from posediff.models import PoseDiffusionModule
 from posediff.nn import MLPDenoiser
 from posediff.symmetry import (
     SHAPES,

@@ -7,7 +7,7 @@ from torch.testing import assert_close
 
 from posediff.diffusion import ConcentratedGaussian, Diffusion, FewStepSampler, PowerSchedule
 from posediff.lie import get_group
-from posediff.module import PoseDiffusionModule
+from posediff.models import PoseDiffusionModule
 from posediff.nn import Encoding, MLPDenoiser
 from posediff.testing import synthetic_batch
 

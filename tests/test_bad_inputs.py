@@ -667,7 +667,7 @@ LIMITED = [sys.executable, "-c", "import resource, sys; from posediff.cli import
 #: what the fork server imports once, so that a case's process starts with torch, Lightning, Hydra and
 #: posediff loaded (a new interpreter spends ~5 s importing them, 90 times over)
 PRELOAD = ["torch", "lightning.pytorch", "hydra", "posediff.cli", "posediff.tasks", "posediff.evaluation",
-           "posediff.export", "posediff.data.symsol", "posediff.data.bop", __name__]  # fmt: skip
+           "posediff.models.export", "posediff.data.symsol", "posediff.data.bop", __name__]  # fmt: skip
 
 
 def _fresh_interpreter(case: Case) -> bool:
@@ -848,7 +848,7 @@ def test_table_is_in_the_readme() -> None:
 
 def test_sixteen_bit_grey_png_is_read_not_whitened(tmp_path: Path) -> None:
     """A 16-bit grey PNG was 99.7 % white after PIL's RGB conversion; it is scaled by 65535 now."""
-    from posediff.predict import load_image
+    from posediff.evaluation.predict import load_image
 
     grey = np.linspace(0, 65535, 32 * 32).reshape(32, 32).astype(np.uint16)
     path = _png(Env(Path(), Path(), Path(), Path(), dir=tmp_path), "g16.png", grey)

@@ -8,9 +8,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from posediff.checkpoint import load_checkpoint
 from posediff.cli import main
-from posediff.regression import PoseRegressionModule
+from posediff.models import PoseRegressionModule, load_checkpoint
 
 SMALL = [
     "+experiment=quickstart",
@@ -31,7 +30,7 @@ SMALL = [
     "trainer.val_check_interval=2",
     "trainer.log_every_n_steps=1",
 ]
-REGRESSION = ["encoder=pose", "module._target_=posediff.regression.PoseRegressionModule"]
+REGRESSION = ["encoder=pose", "module._target_=posediff.models.PoseRegressionModule"]
 PAPER = [
     "encoder.crop_size=null",
     "encoder.depth_cue=null",
@@ -164,7 +163,7 @@ def test_export_an_image_model_and_refuse_a_regression_one(
     and gets one line."""
     import torch
 
-    from posediff.export import draw_from_meta, draw_inputs, load_exported
+    from posediff.models.export import draw_from_meta, draw_inputs, load_exported
 
     ckpt = runs["quickstart"] / "checkpoints" / "last.ckpt"
     out = tmp_path / "ts"

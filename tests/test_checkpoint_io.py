@@ -1,4 +1,4 @@
-"""Checkpoints survive a kill and a full disk (posediff.checkpoint_io.AtomicCheckpointIO, the trainer's plugin).
+"""Checkpoints survive a kill and a full disk (posediff.training.checkpoint_io.AtomicCheckpointIO, the trainer's plugin).
 
 Lightning's TorchCheckpointIO writes a checkpoint to ``tempfile.mkstemp()`` in ``$TMPDIR`` and then
 ``shutil.move``\\ s it: across filesystems a copy that truncates ``last.ckpt`` first, so a SIGKILL in
@@ -25,15 +25,15 @@ from pathlib import Path
 import pytest
 import torch
 
-from posediff import checkpoint_io
-from posediff.checkpoint_io import (
+from posediff.cli import input_error_line
+from posediff.training import checkpoint_io
+from posediff.training.checkpoint_io import (
     TEMP_PATTERN,
     AtomicCheckpointIO,
     CheckpointWriteError,
     remove_stale_temp_files,
     temp_path,
 )
-from posediff.cli import input_error_line
 
 ROOT = Path(__file__).resolve().parents[1]
 POSEDIFF = Path(sys.executable).with_name("posediff")

@@ -15,9 +15,15 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from posediff.allowlist import BUILDABLE, TRAINER_ONLY, UntrustedConfigError, allow_target, check_config
-from posediff.checkpoint import CheckpointError, load_checkpoint
 from posediff.cli import main
+from posediff.config.allowlist import (
+    BUILDABLE,
+    TRAINER_ONLY,
+    UntrustedConfigError,
+    allow_target,
+    check_config,
+)
+from posediff.models import CheckpointError, load_checkpoint
 
 TOY = [
     "+experiment=toy_so3",
@@ -160,15 +166,15 @@ def test_every_config_target_is_allowed() -> None:
             if line.startswith("_target_:"):
                 targets.add(line.split(":", 1)[1].strip())
     missing = sorted(t for t in targets if t not in BUILDABLE | TRAINER_ONLY)
-    assert not missing, f"add to posediff.allowlist: {missing}"
+    assert not missing, f"add to posediff.config.allowlist: {missing}"
 
 
 def test_trainer_pieces_are_not_buildable() -> None:
     """A built section may not name a callback or logger (checked, never built, only in trainer)."""
-    cfg = {"data": {"_target_": "posediff.callbacks.ProgressLog", "path": "x.log"}}
+    cfg = {"data": {"_target_": "posediff.training.callbacks.ProgressLog", "path": "x.log"}}
     with pytest.raises(UntrustedConfigError, match="data._target_"):
         check_config(cfg)
-    check_config({"trainer": {"callbacks": [{"_target_": "posediff.callbacks.ProgressLog"}]}})
+    check_config({"trainer": {"callbacks": [{"_target_": "posediff.training.callbacks.ProgressLog"}]}})
 
 
 def test_allow_target_is_explicit() -> None:

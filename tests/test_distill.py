@@ -9,7 +9,7 @@ import torch
 from posediff import load_checkpoint
 from posediff.cli import main
 from posediff.diffusion import FewStepSampler
-from posediff.distill import SegmentDistillation, student_grid
+from posediff.training.distill import SegmentDistillation, student_grid
 
 TOY = ["+experiment=toy_se3", "trainer.max_steps=3", "trainer.val_check_interval=3",
        "trainer.enable_progress_bar=false", "data.num_train=64", "data.batch_size=8",

@@ -9,8 +9,8 @@ from torch import nn
 
 from posediff.data.bop import BopDataModule
 from posediff.evaluation.bop import evaluate_bop
+from posediff.evaluation.report import run_table
 from posediff.metrics.bop19 import read_bop19_csv, write_bop19_csv
-from posediff.report import run_table
 
 
 class _Sampler:
@@ -128,8 +128,8 @@ def test_partial_runs_and_objects_without_estimates(bop_root: Path) -> None:
 
 
 def test_decode_prediction_returns_camera_frame_poses_and_modes(dm: BopDataModule) -> None:
+    from posediff.evaluation.predict import Prediction, decode_prediction
     from posediff.lie import SE3
-    from posediff.predict import Prediction, decode_prediction
 
     s = dm.test[0]
     x = s["pose"].double().expand(6, 4, 4).clone()
@@ -183,7 +183,7 @@ def test_eval_and_score_agree_on_the_csv_eval_writes(
 
 
 def test_several_hypotheses_give_the_heaviest_mode_and_its_weight() -> None:
-    from posediff.evaluate_bop import best_hypothesis
+    from posediff.evaluation.bop import best_hypothesis
     from posediff.lie import SO3
 
     g = torch.Generator().manual_seed(0)

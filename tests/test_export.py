@@ -11,7 +11,7 @@ from hydra.utils import instantiate
 
 from posediff.cli import config_dir
 from posediff.config import register_resolvers
-from posediff.export import SamplingLoop, draw_inputs, export_module, load_exported, noise_steps
+from posediff.models.export import SamplingLoop, draw_inputs, export_module, load_exported, noise_steps
 
 GROUPS = {"so3": "toy_so3", "r3so3": "toy_se3", "se3": "toy_se3"}
 STEPS, N = 3, 5
@@ -90,7 +90,7 @@ def test_every_format_on_every_group(model, fmt: str, tmp_path: Path) -> None:  
 
 
 def test_bad_options(tmp_path: Path) -> None:
-    from posediff.export import ExportError
+    from posediff.models.export import ExportError
 
     module, example = _model("so3")
     with pytest.raises(ExportError, match="unknown format 'tflite'"):

@@ -1,6 +1,6 @@
 """Exports against bad input: a tampered export folder never runs code or reads outside itself
-(:func:`posediff.export.load_exported`), the unrolled step count has a default that finishes and a
-bound (:func:`posediff.export.unrolled_steps`), and a full disk is one line with nothing left behind
+(:func:`posediff.models.export.load_exported`), the unrolled step count has a default that finishes and a
+bound (:func:`posediff.models.export.unrolled_steps`), and a full disk is one line with nothing left behind
 (``posediff export`` through the real CLI in a subprocess).
 
 The attack of the first test is the one a user found: a real ExportedProgram whose weights config marks
@@ -29,7 +29,7 @@ from hydra.utils import instantiate
 
 from posediff.cli import config_dir, main
 from posediff.config import register_resolvers
-from posediff.export import (
+from posediff.models.export import (
     DEFAULT_NUM_STEPS,
     ExportedFilesError,
     ExportError,

@@ -1,5 +1,5 @@
 """Input checks at the edges a user touches first: image files (EXIF orientation, folders, devices,
-``~``), the Python API ``posediff.sample`` (layouts, dtypes, ranges, non-finite pixels or weights,
+``~``), the Python API ``posediff.predict`` (layouts, dtypes, ranges, non-finite pixels or weights,
 bad numeric arguments) and BOP19 results files (rotations that are none, a byte-order mark, other
 encodings). Each refusal is one line, of a posediff ``ValueError`` / ``OSError`` subclass, so the
 CLI prints it as ``posediff <command>: ...``."""
@@ -48,7 +48,7 @@ def tiny_model() -> torch.nn.Module:
 
     from posediff.diffusion import ConcentratedGaussian, Diffusion, FewStepSampler, PowerSchedule
     from posediff.lie import get_group
-    from posediff.module import PoseDiffusionModule
+    from posediff.models import PoseDiffusionModule
     from posediff.nn import MLPDenoiser, PoseEncoder
 
     torch.manual_seed(0)
@@ -146,7 +146,7 @@ def test_tilde_is_expanded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> N
 
 
 # --------------------------------------------------------------------------------------------------
-# The Python API: posediff.sample
+# The Python API: posediff.predict
 # --------------------------------------------------------------------------------------------------
 
 
@@ -161,13 +161,13 @@ def image() -> torch.Tensor:
 
 
 def _sample(model: torch.nn.Module, image: object, **kw: object) -> torch.Tensor:
-    return posediff.sample(model, image, num_samples=kw.pop("num_samples", 4), **kw).samples
+    return posediff.predict(model, image, num_samples=kw.pop("num_samples", 4), **kw).samples
 
 
 def test_a_batch_of_one_is_one_image(model: torch.nn.Module, image: torch.Tensor) -> None:
     assert_close(_sample(model, image[None]), _sample(model, image))
     # whole numbers of any integer type, and ints for the float settings, are fine
-    pred = posediff.sample(
+    pred = posediff.predict(
         model, image[None], num_samples=np.int64(3), seed=7, mode_radius_deg=5, min_mode_weight=0
     )
     assert pred.samples.shape == (3, 4, 4) and torch.isfinite(pred.samples).all()
@@ -275,14 +275,14 @@ CRASH_SCRIPT = (
         one_inf[1, 3, 4] = float("inf")
         for what, x in (("NaN image", torch.full_like(image, float("nan"))), ("one inf pixel", one_inf)):
             try:
-                posediff.sample(model, x, num_samples=2)
+                posediff.predict(model, x, num_samples=2)
                 print(f"{what}: no error", flush=True)
             except ValueError as e:
                 print(f"{what}: {type(e).__name__}: {e}", flush=True)
         with torch.no_grad():
             next(model.encoder.locator.parameters()).fill_(float("nan"))
         try:
-            posediff.sample(model, image, num_samples=2)
+            posediff.predict(model, image, num_samples=2)
             print("NaN locator: no error", flush=True)
         except ValueError as e:
             print(f"NaN locator: {type(e).__name__}: {e}", flush=True)

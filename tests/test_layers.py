@@ -89,7 +89,7 @@ def test_importing_posediff_changes_no_environment_and_loads_no_fixture() -> Non
         "import torch, torchvision, lightning, hydra, kornia, trimesh, cv2, matplotlib\n"
         "before = dict(os.environ)\n"
         "import posediff, posediff.data.bop, posediff.data.symsol, posediff.tasks, posediff.cli\n"
-        "import posediff.evaluate_bop, posediff.predict, posediff.metrics\n"
+        "import posediff.evaluation.bop, posediff.evaluation.predict, posediff.metrics\n"
         "changed = sorted(k for k in set(before) | set(os.environ) if before.get(k) != os.environ.get(k))\n"
         "print(changed, 'posediff.data.bop.fixture' in sys.modules)\n"
         "from posediff.data.bop import make_bop_fixture\n"

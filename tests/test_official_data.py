@@ -381,8 +381,8 @@ def test_fit_eval_predict_on_the_official_files(
 def test_log_likelihood_units(symsol_zip: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A model whose score is zero everywhere leaves the ODE at rest: every ground truth gets the
     Haar prior's density, which in Implicit-PDF's units is exactly −ln π² (≈ −2.29)."""
-    from posediff.checkpoint import load_checkpoint
     from posediff.evaluation import evaluate_data
+    from posediff.models import load_checkpoint
 
     run = tmp_path / "fit"
     args = [*SO3_SMALL, "data=symsol_official", f"data.root={symsol_zip}", "data.image_size=32",

@@ -13,9 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from posediff.checkpoint import CheckpointError, load_checkpoint, read_checkpoint
 from posediff.cli import main
-from posediff.module import PoseDiffusionModule
+from posediff.models import CheckpointError, PoseDiffusionModule, load_checkpoint, read_checkpoint
 
 SMALL = [
     "+experiment=quickstart",

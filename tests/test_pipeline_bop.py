@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from posediff.checkpoint import read_checkpoint
 from posediff.cli import main
 from posediff.metrics.bop19 import read_bop19_csv
+from posediff.models import read_checkpoint
 
 SMALL = [
     "+experiment=tless_se3",

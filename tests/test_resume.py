@@ -55,7 +55,7 @@ if os.environ.get("POSEDIFF_TEST_STALL_AT"):
     import time
     from pathlib import Path
 
-    from posediff.callbacks import ProgressLog
+    from posediff.training.callbacks import ProgressLog
 
     _at, _marker = int(os.environ["POSEDIFF_TEST_STALL_AT"]), Path(os.environ["POSEDIFF_TEST_MARKER"])
     _start = ProgressLog.on_train_batch_start

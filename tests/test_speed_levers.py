@@ -20,8 +20,9 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from torch.testing import assert_close
 
-from posediff import module as module_mod
+from posediff import hardware
 from posediff.config import register_resolvers
+from posediff.models import base as module_base
 
 ROOT = Path(__file__).resolve().parents[1]
 TOY = ["+experiment=toy_so3", "data.num_train=64", "data.batch_size=8", "module.num_noisy=4",
@@ -114,7 +115,7 @@ def test_compile_without_a_compiler_warns_and_stays_eager(monkeypatch: pytest.Mo
     import shutil
 
     monkeypatch.setattr(shutil, "which", lambda name: None)
-    assert "C++ compiler" in (module_mod.compile_problem() or "")
+    assert "C++ compiler" in (hardware.compile_problem() or "")
     cfg = _compose([*TOY, "module.compile=true"])
     m = instantiate(cfg.module)
     with pytest.warns(UserWarning, match="module.compile=true ignored"):
@@ -143,13 +144,13 @@ def test_the_symmetric_rotation_loss_is_computed_once(monkeypatch: pytest.Monkey
     m = instantiate(cfg.module)
     m.log = lambda *a, **k: None
     calls = []
-    real = module_mod.symmetric_rotation_loss
+    real = module_base.symmetric_rotation_loss
 
     def counted(batch, R):  # noqa: ANN001, ANN202
         calls.append(R.requires_grad)
         return real(batch, R)
 
-    monkeypatch.setattr(module_mod, "symmetric_rotation_loss", counted)
+    monkeypatch.setattr(module_base, "symmetric_rotation_loss", counted)
     batch, enc = _side_loss_batch(m)
     total = m.side_losses(batch, enc, "train")
     assert calls == [True], calls
@@ -163,7 +164,7 @@ def test_the_symmetric_rotation_loss_is_computed_once(monkeypatch: pytest.Monkey
 @pytest.mark.slow
 def test_compiled_networks_give_the_eager_loss_and_gradients() -> None:
     """``module.compile=true`` (inductor on the CPU): the first steps' weights as eager ones."""
-    from posediff.module import compile_problem
+    from posediff.hardware import compile_problem
 
     if compile_problem() is not None:
         pytest.skip(compile_problem())

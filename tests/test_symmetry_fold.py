@@ -11,7 +11,7 @@ from torch.testing import assert_close
 from posediff.diffusion import ConcentratedGaussian, Diffusion, FewStepSampler, PowerSchedule
 from posediff.lie import get_group
 from posediff.lie._pose import make_pose
-from posediff.module import PoseDiffusionModule
+from posediff.models import PoseDiffusionModule
 from posediff.nn import Encoding, MLPDenoiser
 from posediff.symmetry import SHAPES, nearest_symmetry, symmetry_group, symsol_nearest_symmetry
 

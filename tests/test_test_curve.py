@@ -11,7 +11,7 @@ from posediff.cli import main
 
 RENDER = ["data", "render", "dataset=symsolt", "image_size=32", "shapes=[tet,cube]", "shard_size=4",
           "progress=false"]  # fmt: skip
-CURVE = "posediff.callbacks.TestCurve"
+CURVE = "posediff.training.callbacks.TestCurve"
 
 
 def _fit(root: Path, run: Path, max_steps: int, *extra: str) -> int:
@@ -69,7 +69,7 @@ def test_rows_every_n_steps_and_a_resume_continues_them(symsol: Path, tmp_path: 
 
 
 def test_a_bad_interval_is_refused() -> None:
-    from posediff.callbacks import TestCurve
+    from posediff.training.callbacks import TestCurve
 
     with pytest.raises(ValueError, match="every_n_steps"):
         TestCurve(path="x.json", every_n_steps=0)

@@ -22,11 +22,12 @@ except _NotFound:  # pragma: no cover - a source tree that was never installed
 #: the rest of the public API, imported on first use (``posediff.load_checkpoint`` does not pay for
 #: Lightning or the data modules until it is called)
 _LAZY = {
-    "load_checkpoint": ("posediff.checkpoint", "load_checkpoint"),
-    "sample": ("posediff.evaluation.predict", "predict"),  # posediff.predict is the (old) module
+    "load_checkpoint": ("posediff.models", "load_checkpoint"),
+    "predict": ("posediff.evaluation.predict", "predict"),
     "Prediction": ("posediff.evaluation.predict", "Prediction"),
     "load_image": ("posediff.evaluation.predict", "load_image"),
-    "PoseDiffusionModule": ("posediff.module", "PoseDiffusionModule"),
+    "PoseDiffusionModule": ("posediff.models", "PoseDiffusionModule"),
+    "PoseRegressionModule": ("posediff.models", "PoseRegressionModule"),
     "SymmetrySet": ("posediff.symmetry", "SymmetrySet"),
     "modes": ("posediff.diffusion", "modes"),
 }

@@ -58,4 +58,14 @@ def fast_precision(accelerator: str = "auto") -> str:
     return "bf16-mixed" if native_bf16() else "32-true"
 
 
-__all__ = ["BF16_CPU_FLAGS", "cpu_flags", "fast_precision", "native_bf16"]
+def compile_problem() -> str | None:
+    """Why ``torch.compile`` (inductor) cannot run here, or ``None``: on the CPU it needs a C++ compiler."""
+    import os
+    import shutil
+
+    if not any(shutil.which(c) for c in (os.environ.get("CXX", "g++"), "g++", "clang++", "c++")):
+        return "inductor needs a C++ compiler on the CPU and none is on PATH (apt install g++)"
+    return None
+
+
+__all__ = ["BF16_CPU_FLAGS", "compile_problem", "cpu_flags", "fast_precision", "native_bf16"]

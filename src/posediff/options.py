@@ -237,6 +237,19 @@ def option_problems(config: Any) -> Iterator[tuple[str, Any, str]]:
             yield path, value, why
 
 
+def whole(value: Any, key: str, least: int = 1, most: int | None = None, *, allow: tuple = ()) -> int:
+    """``value`` as an int in ``[least, most]`` (or one of ``allow``), else a one-line
+    :class:`OptionError` naming ``key`` (a command's own option, checked against what it is used for)."""
+    if value in allow and not isinstance(value, bool):
+        return value
+    ok = isinstance(value, int) and not isinstance(value, bool)
+    if not ok or value < least or (most is not None and value > most):
+        span = f"[{least}, {most}]" if most is not None else f"≥ {least}"
+        extra = f" (or {', '.join(map(str, allow))})" if allow else ""
+        raise OptionError(f"{key} must be a whole number {span}{extra}, got {value!r}")
+    return int(value)
+
+
 def check_options(config: Any, where: str | None = None) -> None:
     """Refuse (:class:`OptionError`, one line) the first value of ``config`` outside its bounds.
 
@@ -251,4 +264,4 @@ def check_options(config: Any, where: str | None = None) -> None:
         )
 
 
-__all__ = ["BOUNDS", "OptionError", "Real", "Whole", "check_options", "option_problems"]
+__all__ = ["BOUNDS", "OptionError", "Real", "Whole", "check_options", "option_problems", "whole"]

@@ -135,7 +135,7 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
     import lightning as L
 
     from ._io import atomic_write_json, atomic_write_text
-    from .module import PoseDiffusionModule
+    from .models import PoseModule
 
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out_dir = Path(HydraConfig.get().runtime.output_dir)
@@ -162,8 +162,8 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
             raise
         print(f"posediff fit: {message}", file=sys.stderr)
         return 2
-    if not isinstance(module, PoseDiffusionModule):
-        raise TypeError(f"module config builds {type(module).__name__}, not a PoseDiffusionModule")
+    if not isinstance(module, PoseModule):
+        raise TypeError(f"module config builds {type(module).__name__}, not a PoseModule")
     try:  # every option checked now, not after hours of training
         eval_samplers = _check_fit_options(cfg, module)
     except ValueError as e:
@@ -171,12 +171,12 @@ def fit(cfg: DictConfig, *, encoder_out: Path | None = None) -> int:
         return 2
     module.config = OmegaConf.to_container(cfg, resolve=True)
     if cfg.ckpt_path is not None:
-        from .checkpoint import CheckpointError, check_compatible, read_checkpoint
+        from .models import CONFIG_KEY, CheckpointError, check_compatible, read_checkpoint
 
         try:
             stored_ckpt = read_checkpoint(cfg.ckpt_path)
             check_compatible(
-                stored_ckpt["posediff_config"],
+                stored_ckpt[CONFIG_KEY],
                 group=module.group.name,
                 shapes=list(getattr(datamodule, "shapes", [])) or None,
                 where=f"checkpoint {cfg.ckpt_path}",
@@ -305,7 +305,7 @@ def _check_fit_options(cfg: DictConfig, module: Any) -> dict[str, Any]:
 
 def _check_same_architecture(stored: dict[str, Any], module: Any, path: Any) -> None:
     """Refuse (one line) resuming a checkpoint whose weights do not fit ``module``'s architecture."""
-    from .checkpoint import CheckpointError
+    from .models import CheckpointError
 
     have = module.state_dict()
     for key in sorted(set(stored) | set(have)):
@@ -354,7 +354,7 @@ def _device(name: str) -> torch.device:
 def _checkpoint_run(cfg: DictConfig) -> tuple[Any, DictConfig]:
     """The module of ``cfg.ckpt_path`` and its run config with the command's ``group`` / ``data`` /
     ``sampler`` choices applied (a data mapping without ``_target_`` overrides single keys)."""
-    from .checkpoint import CONFIG_KEY, check_compatible, module_from_checkpoint, read_checkpoint
+    from .models import CONFIG_KEY, check_compatible, module_from_checkpoint, read_checkpoint
 
     ckpt = read_checkpoint(cfg.ckpt_path)
     config = ckpt[CONFIG_KEY]
@@ -399,8 +399,8 @@ def evaluate_checkpoint(cfg: DictConfig) -> int:
     """``posediff eval``: metrics of a checkpoint on its (or another) test set; ``metrics.json`` and
     ``metrics.md`` in the run folder. Step counts are a sampler option (``sampler.num_steps``)."""
     from ._io import atomic_write_json, atomic_write_text
-    from .checkpoint import CheckpointError
     from .evaluation.report import run_table
+    from .models import CheckpointError
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
@@ -508,15 +508,20 @@ def score(cfg: DictConfig) -> int:
 
 
 def distill(cfg: DictConfig) -> int:
-    """``posediff distill ckpt_path=TEACHER steps=5``: a few-step student (:mod:`posediff.distill`) trained
+    """``posediff distill ckpt_path=TEACHER steps=5``: a few-step student (:mod:`posediff.training.distill`) trained
     on the teacher's own training data, written as a normal checkpoint (``out``, default
     ``<run>/checkpoints/last.ckpt``) plus ``distill.json`` in the run folder."""
     import lightning as L
 
     from ._io import atomic_write_json
-    from .checkpoint import CONFIG_KEY, CheckpointError, module_from_checkpoint, read_checkpoint
-    from .distill import DistillationError, SegmentDistillation, save_student
-    from .module import PoseDiffusionModule
+    from .models import (
+        CONFIG_KEY,
+        CheckpointError,
+        PoseDiffusionModule,
+        module_from_checkpoint,
+        read_checkpoint,
+    )
+    from .training.distill import DistillationError, SegmentDistillation, save_student
 
     command = "posediff distill"
     out_dir = Path(HydraConfig.get().runtime.output_dir)
@@ -524,11 +529,7 @@ def distill(cfg: DictConfig) -> int:
         L.seed_everything(int(cfg.seed), workers=True, verbose=False)
         ckpt = read_checkpoint(cfg.ckpt_path)
         teacher = module_from_checkpoint(ckpt, cfg.ckpt_path)
-        if (
-            not isinstance(teacher, PoseDiffusionModule)
-            or getattr(teacher, "estimator", None) is not None
-            or not hasattr(teacher.sampler, "step")
-        ):
+        if not isinstance(teacher, PoseDiffusionModule) or not hasattr(teacher.sampler, "step"):
             raise DistillationError(
                 f"checkpoint {cfg.ckpt_path} is a {type(teacher).__name__}, not a diffusion model: "
                 "posediff distill needs a score model trained by posediff fit"
@@ -606,15 +607,15 @@ def distill(cfg: DictConfig) -> int:
 
 def export_checkpoint(cfg: DictConfig) -> int:
     """``posediff export``: a checkpoint's graphs in ONNX / TorchScript / ExportedProgram
-    (:func:`posediff.export.export_module`), written to ``<out>.partial`` and renamed.
+    (:func:`posediff.models.export.export_module`), written to ``<out>.partial`` and renamed.
 
-    The step count the sampler graph unrolls is settled (:func:`posediff.export.unrolled_steps`:
+    The step count the sampler graph unrolls is settled (:func:`posediff.models.export.unrolled_steps`:
     ``num_steps``, else the checkpoint's sampler's, else the default; above ``max_unrolled`` refused)
     and printed before the export starts. A write that fails (a full disk) is one line naming the
     folder, and the unfinished ``.partial`` folder is removed: nothing is left in ``out``."""
     from ._io import OutputFolderError, check_output_dir, make_output_dir, remove_own_dir, replace_dir
-    from .checkpoint import CheckpointError, load_checkpoint
-    from .export import FORMATS, ExportError, ExportWriteError, export_module, unrolled_steps
+    from .models import CheckpointError, PoseDiffusionModule, load_checkpoint
+    from .models.export import FORMATS, ExportError, ExportWriteError, export_module, unrolled_steps
 
     command = "posediff export"
     try:
@@ -632,7 +633,7 @@ def export_checkpoint(cfg: DictConfig) -> int:
             raise ExportError(f"out={out} already exists; give a new folder or overwrite=true")
         check_output_dir(out, command, replace=True, key="out")  # only a folder posediff made is replaced
         module = load_checkpoint(cfg.ckpt_path)
-        if getattr(module, "estimator", None) is not None or not hasattr(module.sampler, "step"):
+        if not isinstance(module, PoseDiffusionModule) or not hasattr(module.sampler, "step"):
             raise ExportError(
                 f"checkpoint {cfg.ckpt_path} is a {type(module).__name__} (no diffusion sampler): "
                 "posediff export writes diffusion models only"
@@ -699,9 +700,9 @@ def predict(cfg: DictConfig) -> int:
     """``posediff predict``: hypotheses, modes, ``poses.npz`` / ``poses.json`` and the plots for one
     image file (``image=``) or one test sample (``index=``; what it needs comes from the data module,
     :meth:`posediff.data.PoseDataModule.prediction_input`)."""
-    from .allowlist import target_class
-    from .checkpoint import CheckpointError
+    from .config.allowlist import target_class
     from .evaluation import decode_prediction, image_tensor, predict, read_image, save_prediction
+    from .models import CheckpointError
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:

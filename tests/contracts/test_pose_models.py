@@ -22,12 +22,12 @@ TINY = [
 ANCHOR = ["encoder=pose", "module.anchor=true"]
 REGRESSION = [
     "encoder=pose",
-    "module._target_=posediff.regression.PoseRegressionModule",
+    "module._target_=posediff.models.PoseRegressionModule",
     "module.denoiser=null",
 ]
 ITERATIVE = [
     "encoder=pose",
-    "module._target_=posediff.regression.PoseRegressionModule",
+    "module._target_=posediff.models.PoseRegressionModule",
     "+module.iterations=2",
 ]
 

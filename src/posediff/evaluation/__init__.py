@@ -14,6 +14,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from ..models import PoseDiffusionModule
 from .bop import (
     best_hypothesis,
     check_estimates,
@@ -41,7 +42,7 @@ def _score_shapes(module: Any, datamodule: Any, **kwargs: Any) -> dict[str, Any]
     kwargs.pop("vsd", None)  # a BOP option
     if kwargs.get("log_likelihood") is None:  # auto: on for SO(3) data that asks for it (SYMSOL)
         kwargs["log_likelihood"] = bool(getattr(datamodule, "log_likelihood_default", False)) and (
-            getattr(module, "estimator", None) is None
+            isinstance(module, PoseDiffusionModule)
         )
     sets = getattr(datamodule, "symmetry_sets", None)  # the official SYMSOL files' own equivalents
     return evaluate(module, datamodule.test_dataloader(), list(getattr(datamodule, "shapes", [])),

@@ -50,7 +50,7 @@ from ..data.bop.reader import Instance, read_depth
 from ..diffusion import Sampler
 from ..metrics import bop, bop19
 from ..metrics.bop19 import BopEstimate
-from ..module import PoseDiffusionModule
+from ..models import PoseModule
 from .sampling import SampledBatches
 from .shapes import _fmt_thr as _label
 from .shapes import _nanmean
@@ -83,7 +83,7 @@ def best_hypothesis(R: torch.Tensor, t: torch.Tensor) -> tuple[np.ndarray, np.nd
 
 @torch.no_grad()
 def predict_targets(
-    module: PoseDiffusionModule,
+    module: PoseModule,
     datamodule: BopDataModule,
     *,
     num_samples: int = 1,
@@ -180,6 +180,46 @@ def check_estimates(
                 f"{name}: scene {e.scene_id} image {e.im_id} holds no target of "
                 f"{datamodule.root / (datamodule.targets_file or datamodule.test_split)}"
             )
+
+
+def read_results_file(csv: Any) -> list[BopEstimate]:
+    """The estimates of a BOP19 results CSV (any method's); a missing or empty file refused in one line."""
+    from pathlib import Path
+
+    csv = Path(str(csv))
+    if not csv.is_file():
+        raise FileNotFoundError(
+            f"csv={csv}: no such file (a BOP19 results CSV: scene_id,im_id,obj_id,score,R,t,time)"
+        )
+    rows = bop19.read_bop19_csv(csv)
+    if not rows:
+        raise ValueError(f"{csv}: no estimates in the file")
+    return rows
+
+
+def scoring_setup(
+    rows: Sequence[BopEstimate],
+    datamodule: Any,
+    vsd_delta: float | None = None,
+    *,
+    data_name: str | None = None,
+) -> float:
+    """Make ``datamodule`` (a BOP data module; anything else refused) ready to score ``rows``: its test
+    targets read, the rows checked against them (:func:`check_estimates`). Returns the VSD tolerance
+    in mm: ``vsd_delta``, else the dataset's own (:data:`~posediff.metrics.bop19.VSD_DELTAS`, by its
+    folder name; 15 mm otherwise). ``data_name``: how a refusal names the data (its config's
+    ``_target_``). Bad input: one-line ``ValueError``."""
+    if not isinstance(datamodule, BopDataModule):
+        name = data_name or f"{type(datamodule).__module__}.{type(datamodule).__qualname__}"
+        raise ValueError(f"data={name} is not a BOP dataset; posediff score needs one (data=tless)")
+    datamodule.read_targets()
+    check_estimates(rows, datamodule)
+    if vsd_delta is None:
+        name = datamodule.root.name.lower().replace("_", "").replace("-", "")
+        vsd_delta = bop19.VSD_DELTAS.get(name, 15.0)
+    if not float(vsd_delta) > 0:
+        raise ValueError(f"vsd_delta must be > 0 mm, got {vsd_delta}")
+    return float(vsd_delta)
 
 
 class _Depths:
@@ -402,7 +442,7 @@ def score_estimates(
 
 
 def evaluate_bop(
-    module: PoseDiffusionModule,
+    module: PoseModule,
     datamodule: BopDataModule,
     *,
     num_samples: int = 1,
@@ -447,5 +487,7 @@ __all__ = [
     "estimates_of_predictions",
     "evaluate_bop",
     "predict_targets",
+    "read_results_file",
     "score_estimates",
+    "scoring_setup",
 ]

@@ -9,7 +9,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from ..diffusion import Sampler
-from ..module import PoseDiffusionModule
+from ..models import PoseDiffusionModule, PoseModule, PoseRegressionModule
 
 
 class SampledBatches:
@@ -20,7 +20,7 @@ class SampledBatches:
 
     def __init__(
         self,
-        module: PoseDiffusionModule,
+        module: PoseModule,
         loader: DataLoader,
         num_samples: int,
         num_steps: int | None,
@@ -58,9 +58,8 @@ class SampledBatches:
             "inputs": self.count,
             "num_samples": int(self.num_samples),
         }
-        estimator = getattr(self.module, "estimator", None)
-        if estimator is not None:  # a regression model: one estimate, refined `iterations` times
-            return {**out, "num_steps": int(getattr(self.module, "iterations", 0)), "sampler": str(estimator)}
+        if isinstance(self.module, PoseRegressionModule):  # one estimate, refined `iterations` times
+            return {**out, "num_steps": self.module.iterations, "sampler": "regression"}
         s = self.sampler or self.module.sampler
         steps = self.num_steps if self.num_steps is not None else s.num_steps
         return {

@@ -37,7 +37,7 @@ from torch.utils.data import DataLoader
 
 from ..diffusion import Sampler, log_likelihood
 from ..metrics import mode_coverage, recall, rotation_errors_deg, translation_errors
-from ..module import PoseDiffusionModule
+from ..models import PoseDiffusionModule, PoseModule
 from ..symmetry import SHAPES, SYMSOL_LABELS, SymmetrySet, is_continuous
 from .sampling import SampledBatches
 
@@ -50,7 +50,7 @@ LOG_IPDF_FROM_POSEDIFF = math.log(8.0)
 
 @torch.no_grad()
 def evaluate(
-    module: PoseDiffusionModule,
+    module: PoseModule,
     loader: DataLoader,
     shapes: Sequence[str],
     *,
@@ -72,9 +72,9 @@ def evaluate(
     equivalents as its data gives them (the official SYMSOL files), else posediff's exact groups.
     ``log_likelihood``: also the ground truth's log density (module docstring), by the ODE on
     ``log_likelihood_steps`` levels (and half as many, for the error estimate)."""
-    if log_likelihood and getattr(module, "estimator", None) is not None:
+    if log_likelihood and not isinstance(module, PoseDiffusionModule):
         raise ValueError(
-            f"log-likelihood needs a diffusion model; this is a {module.estimator} model (set eval.log_likelihood=false)"
+            "log-likelihood needs a diffusion model; this is a regression model (set eval.log_likelihood=false)"
         )
     if int(log_likelihood_steps) < 2:
         raise ValueError(f"eval.log_likelihood_steps must be at least 2, got {log_likelihood_steps}")
@@ -101,7 +101,7 @@ def evaluate(
 
 
 def _evaluate(
-    module: PoseDiffusionModule,
+    module: PoseModule,
     loader: DataLoader,
     shapes: Sequence[str],
     num_samples: int,

@@ -7,6 +7,7 @@
 * :class:`ResNetEncoder`: image → condition vector (torchvision ResNet + the paper's feature head).
 * :class:`PoseEncoder`: image → :class:`Encoding` (feature + an anchor pose from a pose head;
   optionally locate-then-crop), for the anchored denoiser and the regression baselines.
+* :func:`pose_input_dim` / :func:`pose_features`: what the denoiser sees of a pose.
 """
 
 from .blocks import ACTIVATIONS, ConditionedBlock, FourierBlock, LecunLinear, ScaleBiasBlock, make_activation
@@ -14,6 +15,7 @@ from .denoiser import MLPDenoiser
 from .embedding import SinusoidalEmbedding
 from .encoder import ResNetEncoder
 from .pose_encoder import CropBoxError, Encoding, PoseEncoder, ray_rotation, rotation_from_6d
+from .pose_input import POSE_INPUTS, pose_features, pose_input_dim
 
 __all__ = [
     "ACTIVATIONS",
@@ -23,11 +25,14 @@ __all__ = [
     "FourierBlock",
     "LecunLinear",
     "MLPDenoiser",
+    "POSE_INPUTS",
     "PoseEncoder",
     "ResNetEncoder",
     "ScaleBiasBlock",
     "SinusoidalEmbedding",
     "make_activation",
+    "pose_features",
+    "pose_input_dim",
     "ray_rotation",
     "rotation_from_6d",
 ]

@@ -27,24 +27,27 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from .module import PoseDiffusionModule, symmetric_rotation_loss
-from .nn.pose_encoder import Encoding
+from ..nn.pose_encoder import Encoding
+from .base import PoseModule
+from .losses import symmetric_rotation_loss
 
 __all__ = ["PoseRegressionModule"]
 
 
-class PoseRegressionModule(PoseDiffusionModule):
-    """Symmetry-aware pose regression (module docstring). Takes :class:`PoseDiffusionModule`'s
+class PoseRegressionModule(PoseModule):
+    """Symmetry-aware pose regression (module docstring), a sibling of
+    :class:`~posediff.models.PoseDiffusionModule`. Takes :class:`~posediff.models.base.PoseModule`'s
     arguments (the diffusion object only names the group; no denoising is trained) and:
 
     Args:
         iterations: refinement steps K (0: direct regression).
         translation_weight: weight of the translation's squared error.
         denoiser: the refinement network (``iterations > 0``; ``None`` for direct regression).
+        sampler: kept so that one ``module`` config serves both kinds; a regression does not sample.
+        num_noisy, symmetry_fold, grad_probe_every, anchor, aux_weight: the diffusion module's
+            options, accepted so that ``module._target_=posediff.models.PoseRegressionModule`` turns
+            any diffusion experiment into its regression baseline; they do not apply and are ignored.
     """
-
-    #: what evaluation reports as the "sampler" of a regression model
-    estimator = "regression"
 
     def __init__(
         self,
@@ -54,8 +57,12 @@ class PoseRegressionModule(PoseDiffusionModule):
         *,
         iterations: int = 0,
         translation_weight: float = 1.0,
+        num_noisy: int | None = None,
+        symmetry_fold: bool = False,
+        grad_probe_every: int = 0,
         **kwargs: Any,
     ) -> None:
+        del sampler, num_noisy, symmetry_fold, grad_probe_every  # diffusion options (docstring)
         if int(iterations) < 0:
             raise ValueError(f"iterations must be >= 0, got {iterations}")
         if int(iterations) > 0 and denoiser is None:
@@ -64,12 +71,7 @@ class PoseRegressionModule(PoseDiffusionModule):
             )
         kwargs["anchor"] = False
         kwargs["aux_weight"] = 0.0
-        kwargs["symmetry_fold"] = False  # no denoiser to fold
-        if sampler is None:
-            from .diffusion import FewStepSampler
-
-            sampler = FewStepSampler
-        super().__init__(diffusion, denoiser if int(iterations) > 0 else nn.Identity(), sampler, **kwargs)
+        super().__init__(diffusion, denoiser if int(iterations) > 0 else nn.Identity(), **kwargs)
         self.iterations = int(iterations)
         self.translation_weight = float(translation_weight)
         if self.iterations > 0 and hasattr(self.encoder, "decode_in_training"):

@@ -50,6 +50,11 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from .. import __version__
+from .._io import atomic_write_bytes
+from ..config.allowlist import check_config
+from .diffusion import PoseDiffusionModule
+
 FORMATS = ("onnx", "torchscript", "exported_program")
 META_FILE = "posediff_export.json"
 GRAPHS = ("encoder", "denoiser", "sampler")
@@ -225,7 +230,6 @@ def _serialize(
 def _write(path: Path, data: bytes) -> Path:
     """``data`` to ``path`` through a temporary name in its folder and a rename; a failed write is an
     :class:`ExportWriteError` naming the folder (the temporary file removed)."""
-    from ._io import atomic_write_bytes
 
     try:
         return atomic_write_bytes(path, data)
@@ -278,7 +282,7 @@ def export_module(
     info: dict[str, Any] | None = None,
     max_unrolled: int | None = None,
 ) -> dict[str, Path]:
-    """Export ``module`` (a :class:`~posediff.module.PoseDiffusionModule`) in ``fmt`` into the folder
+    """Export ``module`` (a :class:`~posediff.models.PoseDiffusionModule`) in ``fmt`` into the folder
     ``out`` (module docstring). ``example``: one input batch for the encoder (e.g. ``(1, 3, S, S)``);
     ``num_steps``: the loop's steps (default the sampler's, else :data:`DEFAULT_NUM_STEPS`; above
     ``max_unrolled``, default :data:`MAX_UNROLLED`, refused — :func:`unrolled_steps`); ``num_samples``:
@@ -287,7 +291,7 @@ def export_module(
     if fmt not in FORMATS:
         raise ExportError(f"unknown format {fmt!r}; choose one of: {', '.join(FORMATS)}")
     sampler = getattr(module, "sampler", None)
-    if sampler is None or not hasattr(sampler, "step") or getattr(module, "estimator", None) is not None:
+    if not isinstance(module, PoseDiffusionModule) or not hasattr(sampler, "step"):
         raise ExportError(
             f"{type(module).__name__} is not a diffusion model with a sampler; nothing to export"
         )
@@ -323,7 +327,6 @@ def export_module(
         data, dynamic[name] = _serialize(model, args, fmt, names, dyn)
         files[name] = _write(out / f"{name}{_SUFFIX[fmt]}", data)
         del data
-    from . import __version__
 
     meta = {
         "format": fmt,
@@ -363,8 +366,6 @@ def draw_from_meta(
     if not isinstance(config, dict):
         raise ExportError("this export has no diffusion config (made from a module without a run config)")
     from hydra.utils import instantiate
-
-    from .allowlist import check_config
 
     check_config({"diffusion": config}, where="export diffusion_config")
     diffusion = instantiate(config)

@@ -38,8 +38,8 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from .diffusion import Diffusion
-from .module import PoseDiffusionModule
+from ..diffusion import Diffusion
+from ..models import PoseDiffusionModule
 
 #: the sampler of every student (its steps are set from ``steps``)
 STUDENT_SAMPLER: dict[str, Any] = {
@@ -218,9 +218,9 @@ class SegmentDistillation(L.LightningModule):
 
 def save_student(student: PoseDiffusionModule, config: dict[str, Any], path: Any) -> Any:
     """Write ``student`` as a posediff checkpoint (``state_dict`` + run config) atomically, as ``posediff
-    fit`` writes its checkpoints (:func:`posediff.checkpoint_io.save_torch`: a temporary name in the same
-    folder, fsynced, renamed; a full disk is a one-line :class:`~posediff.checkpoint_io.CheckpointWriteError`)."""
-    from .checkpoint import CONFIG_KEY
+    fit`` writes its checkpoints (:func:`posediff.training.checkpoint_io.save_torch`: a temporary name in the same
+    folder, fsynced, renamed; a full disk is a one-line :class:`~posediff.training.checkpoint_io.CheckpointWriteError`)."""
+    from ..models.checkpoint import CONFIG_KEY
     from .checkpoint_io import save_torch
 
     student.config = config

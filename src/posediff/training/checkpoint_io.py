@@ -232,7 +232,7 @@ class AtomicCheckpointIO(TorchCheckpointIO):
     Use it through the trainer config (``conf/trainer/default.yaml``)::
 
         plugins:
-          - _target_: posediff.checkpoint_io.AtomicCheckpointIO
+          - _target_: posediff.training.checkpoint_io.AtomicCheckpointIO
     """
 
     def save_checkpoint(

@@ -182,8 +182,8 @@ class TestCurve(Callback):
             self._evaluate(trainer, pl_module)
 
     def _evaluate(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        from .data.resumable import eval_loader
-        from .evaluation.shapes import evaluate
+        from ..data.resumable import eval_loader
+        from ..evaluation.shapes import evaluate
 
         self._tick()
         start = time.perf_counter()
@@ -219,7 +219,7 @@ class TestCurve(Callback):
         self._mark = (time.perf_counter(), time.process_time())  # the evaluation's time is not training's
 
     def _write(self, trainer: L.Trainer, rows: list[dict[str, Any]]) -> None:
-        from ._io import atomic_write_json
+        from .._io import atomic_write_json
 
         self.path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_json(self.path, {

@@ -5,7 +5,7 @@
 * ``${posediff.not:${trainer.enable_progress_bar}}`` — boolean negation.
 * ``${posediff.has_translation:${group._target_}}`` — whether the group's poses carry a translation.
 * ``${posediff.pose_input_dim:${group._target_},${module.pose_input}}`` — the width of what the
-  denoiser sees of a noisy pose (:meth:`posediff.module.PoseDiffusionModule.pose_input_dim`).
+  denoiser sees of a noisy pose (:func:`posediff.nn.pose_input_dim`).
 * ``${posediff.fast_precision:${trainer.accelerator}}`` — ``bf16-mixed`` where the accelerator
   computes bf16 natively, else ``32-true`` (:func:`posediff.hardware.fast_precision`).
 * ``${posediff.run_id:}`` — a random token, new for every command (:func:`new_run_id`), so that two
@@ -17,11 +17,13 @@ import secrets
 from hydra.utils import get_class
 from omegaconf import OmegaConf
 
+from ..nn.pose_input import pose_input_dim
+
 _RUN_ID = [secrets.token_hex(3)]
 
 
 def new_run_id() -> str:
-    """A new token for ``${posediff.run_id:}`` (``posediff.cli`` draws one per command)."""
+    """A new token for ``${posediff.run_id:}`` (the command line draws one per command)."""
     _RUN_ID[0] = secrets.token_hex(3)
     return _RUN_ID[0]
 
@@ -35,15 +37,13 @@ def _has_translation(target: str) -> bool:
 
 
 def _fast_precision(accelerator: str = "auto") -> str:
-    from .hardware import fast_precision
+    from ..hardware import fast_precision
 
     return fast_precision(str(accelerator))
 
 
 def _pose_input_dim(target: str, pose_input: str) -> int:
-    from .module import PoseDiffusionModule
-
-    return PoseDiffusionModule.pose_input_dim(get_class(target), pose_input)
+    return pose_input_dim(get_class(target), pose_input)
 
 
 def register_resolvers() -> None:
@@ -60,3 +60,6 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("posediff.fast_precision", _fast_precision)
     if not OmegaConf.has_resolver("posediff.pose_input_dim"):
         OmegaConf.register_new_resolver("posediff.pose_input_dim", _pose_input_dim)
+
+
+__all__ = ["new_run_id", "register_resolvers"]

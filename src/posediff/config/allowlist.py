@@ -52,8 +52,8 @@ BUILDABLE: frozenset[str] = frozenset(
         "posediff.nn.ResNetEncoder",
         "posediff.nn.PoseEncoder",
         "posediff.nn.MLPDenoiser",
-        "posediff.module.PoseDiffusionModule",
-        "posediff.regression.PoseRegressionModule",
+        "posediff.models.PoseDiffusionModule",
+        "posediff.models.PoseRegressionModule",
         # data
         "posediff.data.SymmetryToyDataModule",
         "posediff.data.symsol.SymsolDataModule",
@@ -74,14 +74,25 @@ TRAINER_ONLY: frozenset[str] = frozenset(
         "lightning.pytorch.callbacks.EMAWeightAveraging",
         "lightning.pytorch.loggers.CSVLogger",
         "lightning.pytorch.loggers.TensorBoardLogger",
-        "posediff.callbacks.progress_bar",
-        "posediff.callbacks.ProgressLog",
-        "posediff.callbacks.TestCurve",
-        "posediff.checkpoint_io.AtomicCheckpointIO",
-        "posediff.report.ReportCallback",
+        "posediff.training.callbacks.progress_bar",
+        "posediff.training.callbacks.ProgressLog",
+        "posediff.training.callbacks.TestCurve",
+        "posediff.training.checkpoint_io.AtomicCheckpointIO",
         "posediff.evaluation.report.ReportCallback",
     }
 )
+
+#: Dotted names of classes that moved, old → new: checkpoints written before a move still load (the
+#: stored config is read under the old name, checked as the new one and built from the new one).
+RENAMED: dict[str, str] = {
+    "posediff.module.PoseDiffusionModule": "posediff.models.PoseDiffusionModule",
+    "posediff.regression.PoseRegressionModule": "posediff.models.PoseRegressionModule",
+    "posediff.callbacks.progress_bar": "posediff.training.callbacks.progress_bar",
+    "posediff.callbacks.ProgressLog": "posediff.training.callbacks.ProgressLog",
+    "posediff.callbacks.TestCurve": "posediff.training.callbacks.TestCurve",
+    "posediff.checkpoint_io.AtomicCheckpointIO": "posediff.training.checkpoint_io.AtomicCheckpointIO",
+    "posediff.report.ReportCallback": "posediff.evaluation.report.ReportCallback",
+}
 
 #: Sections of a stored run config that posediff builds objects from.
 BUILT_SECTIONS: tuple[str, ...] = ("module", "data", "group", "diffusion", "denoiser", "encoder", "sampler",
@@ -124,7 +135,7 @@ def buildable_targets() -> set[str]:
     global _CANONICAL
     if _CANONICAL is None:
         _CANONICAL = _canonical()
-    from .lie import LieGroup
+    from ..lie import LieGroup
 
     groups = {f"{c.__module__}.{c.__qualname__}" for c in LieGroup.registry.values()}
     return set(BUILDABLE) | _CANONICAL | groups | _extra
@@ -156,11 +167,11 @@ def check_config(config: Any, where: str = "stored config") -> None:
                 target = node["_target_"]
                 section = path.split(".", 1)[0].split("[", 1)[0]
                 allowed = buildable if section in BUILT_SECTIONS else buildable | TRAINER_ONLY
-                if not isinstance(target, str) or target not in allowed:
+                if not isinstance(target, str) or RENAMED.get(target, target) not in allowed:
                     raise UntrustedConfigError(
                         f"{where}: {key}._target_ = {target!r} is not a class posediff builds from "
                         f"a file (refused; nothing was run). If it is your own class, call "
-                        f"posediff.allowlist.allow_target({target!r}) in your code first"
+                        f"posediff.config.allow_target({target!r}) in your code first"
                     )
             elif "_args_" in node:
                 raise UntrustedConfigError(f"{where}: {key} has _args_ but no _target_ (refused)")
@@ -182,18 +193,35 @@ def target_class(config: dict[str, Any], where: str = "stored config") -> type:
     from hydra.utils import get_class
 
     target = config.get("_target_") if isinstance(config, dict) else None
+    target = RENAMED.get(target, target) if isinstance(target, str) else target
     if not isinstance(target, str) or target not in buildable_targets():
         raise UntrustedConfigError(f"{where}: _target_ {target!r} is not a class posediff builds from a file")
     return get_class(target)
 
 
+def upgrade_config(config: Any) -> Any:
+    """``config`` with every ``_target_`` of :data:`RENAMED` replaced by its new name (a copy; plain
+    data in, plain data out). :func:`check_config` accepts a config in either spelling."""
+    if isinstance(config, dict):
+        out = {k: upgrade_config(v) for k, v in config.items()}
+        target = out.get("_target_")
+        if isinstance(target, str) and target in RENAMED:
+            out["_target_"] = RENAMED[target]
+        return out
+    if isinstance(config, list):
+        return [upgrade_config(v) for v in config]
+    return config
+
+
 __all__ = [
     "BUILDABLE",
     "BUILT_SECTIONS",
+    "RENAMED",
     "TRAINER_ONLY",
     "UntrustedConfigError",
     "allow_target",
     "buildable_targets",
     "check_config",
     "target_class",
+    "upgrade_config",
 ]
