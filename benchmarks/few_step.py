@@ -11,7 +11,7 @@ Per row: mean spread over the shapes (°), spread per shape, mode coverage of th
 per input. Rows are appended to the JSON as they finish (``--out``; the Markdown table next to it).
 
 Samplers: ``few_step`` (Euler step of the probability-flow ODE, posediff's deterministic few-step
-sampler), ``few_step_renoise`` (predict clean, re-noise with fresh noise: the README's best at 100
+sampler), ``few_step_renoise`` (predict clean, re-noise with fresh noise: the best at 100 in docs/sampling.md
 steps), ``heun`` / ``heun_karras`` (order 2, schedule / Karras σ), ``crouch_grossman`` (order 3),
 ``rkmk`` (order 4).
 """
@@ -143,7 +143,7 @@ def markdown(rows: list[dict[str, Any]], students: dict[str, dict]) -> str:
 
 
 def compact(rows: list[dict[str, Any]]) -> str:
-    """One README table per model: spread ° (mean coverage of tet/cube/icosa) per sampler and NFE budget
+    """One table per model (docs/sampling.md): spread ° (mean coverage of tet/cube/icosa) per sampler and NFE budget
     (the NFE a row actually spent is at most its budget)."""
     out = []
     for model in dict.fromkeys(r["model"] for r in rows):

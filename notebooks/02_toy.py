@@ -331,7 +331,7 @@ denoiser = MLPDenoiser(
     hidden_dim=CFG["hidden"],
     num_frequencies=CFG["freqs"],
     time_dim=CFG["hidden"],
-    pose_min_period=0.0625,  # faster pose frequencies than the paper's (README, "The CPU toy")
+    pose_min_period=0.0625,  # faster pose frequencies than the paper's (docs/sampling.md, "The CPU toy")
     pose_max_period=10.0,
 )
 toy_diffusion = Diffusion(ConcentratedGaussian("so3"), PowerSchedule(), prior="haar")
@@ -401,7 +401,7 @@ print(f"loss: first {loss[:win].mean():.3f}, last {loss[-win:].mean():.3f}")
 # the re-noising few-step sampler at 100 steps: tetrahedron 0.5° (all 12 modes covered), cube
 # 1.6° (coverage 0.99), cone 0.5°, cylinder 0.7° — from 51°, 41°, 88° and 57° untrained; the
 # icosahedron only in part (7.1°, coverage 0.73: its 60 modes are 37° apart). A 15000-step run
-# brings the icosahedron to 0.9° (README, "The CPU toy").
+# brings the icosahedron to 0.9° (docs/sampling.md, "The CPU toy").
 #
 # One test input per shape, 500 samples of the trained model; the circles are the equivalent
 # poses (for cone and cylinder the continuous set, drawn every 10°).

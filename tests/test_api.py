@@ -94,7 +94,7 @@ def test_the_evaluation_names_live_in_posediff_evaluation() -> None:
             if hasattr(evaluation, name):
                 assert obj is getattr(evaluation, name), (module, name)
     for gone in ("posediff.evaluate", "posediff.evaluate_bop", "posediff.report",
-                 "posediff.module", "posediff.checkpoint", "posediff.regression"):  # fmt: skip
+                 "posediff.module", "posediff.checkpoint", "posediff.regression", "posediff.tasks"):  # fmt: skip
         with pytest.raises(ModuleNotFoundError):
             importlib.import_module(gone)
     assert posediff.predict is importlib.import_module("posediff.evaluation.predict").predict

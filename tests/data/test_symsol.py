@@ -415,7 +415,7 @@ def test_render_presets(preset: str, split: str, size: int, n: int) -> None:
     assert (cfg.image_size, cfg.n_per_shape) == (size, n)
 
 
-# posediff's own renders (the official files' configs are tests/test_official_data.py's)
+# posediff's own renders (the official files' configs are tests/evaluation/test_official_data.py's)
 @pytest.mark.parametrize(
     "name", sorted(p.stem for p in (CONF / "data").glob("symsol*.yaml") if not p.stem.endswith("_official"))
 )

@@ -1,5 +1,5 @@
 """What a data module tells the commands, so that ``posediff fit / eval / predict`` only instantiate
-and call (README, "How to add a dataset"). A Lightning ``LightningDataModule`` with these members:
+and call (docs/extending.md, "How to add a dataset"). A Lightning ``LightningDataModule`` with these members:
 
 ``scorer`` (class attribute)
     which scorer of :data:`posediff.evaluation.SCORERS` scores its test split: ``"shapes"`` (spread,

@@ -20,7 +20,7 @@ apart — two poses 13° apart modulo the symmetries, as plain random draws gave
 condition with satellite modes 13° off): a training rotation is ``R_m · S`` with S a
 uniformly random symmetry (and ``Rz(α)``/flip for cone and cylinder), so the target is still the
 full equivalent set, but the network has M conditions per shape to learn instead of a continuum.
-The CPU toy uses it (the continuum needs far more training than minutes; see the README).
+The CPU toy uses it (the continuum needs far more training than minutes; see docs/sampling.md).
 """
 
 import math

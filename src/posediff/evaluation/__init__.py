@@ -5,7 +5,7 @@ toys and SYMSOL (:mod:`.shapes`), the BOP19 protocol for BOP datasets (:mod:`.bo
 A data module says how its test split is scored through the small protocol of
 :class:`posediff.data.PoseDataModule` (its ``scorer`` names one of :data:`SCORERS`), so that the
 commands only instantiate and call :func:`evaluate_data` and :func:`write_results`; a new kind of
-dataset adds a scorer here (:func:`register_scorer`) or reuses one (README, "How to add a dataset").
+dataset adds a scorer here (:func:`register_scorer`) or reuses one (docs/extending.md, "How to add a dataset").
 """
 
 from __future__ import annotations

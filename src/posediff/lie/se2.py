@@ -1,6 +1,6 @@
 """SE(2): planar rigid motions, ``(*b, 3, 3)`` ``[[R, t], [0, 1]]``, tangent ``[ρx, ρy, θ]``.
 
-The worked example of adding a manifold (see "How to add a group" in the README): one class,
+The worked example of adding a manifold (see "How to add a group" in docs/extending.md): one class,
 kernels written with the shared coefficient functions, and the contract suite does the rest.
 Closed forms (Solà et al. 2018, Sec. IV-A/Appendix C), with A, B, C, D from ``_numerics``:
 

@@ -50,8 +50,8 @@ import numpy as np
 
 from ...symmetry import SymmetrySet
 
-#: what ``posediff data make-bop`` makes; the README's T-LESS section shows the real download.
-MAKE_HINT = "posediff data make-bop out=<dir> makes a small one; see the README for T-LESS"
+#: what ``posediff data make-bop`` makes; docs/bop.md shows the real download.
+MAKE_HINT = "posediff data make-bop out=<dir> makes a small one; see docs/bop.md for T-LESS"
 
 
 class BopFormatError(ValueError):

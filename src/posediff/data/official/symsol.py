@@ -273,7 +273,7 @@ def layout(root: Path) -> str:
     if not root.exists():
         raise OfficialDataError(
             f"{root}: no such folder — point data.root at the unpacked symsol_dataset.zip or at a prepared "
-            "tensorflow_datasets/symmetric_solids/1.0.0 folder (README, 'The benchmarks' own files')"
+            "tensorflow_datasets/symmetric_solids/1.0.0 folder (docs/data.md, 'The benchmarks' own files')"
         )
     if (root / "train" / "images").is_dir() or (root / "test" / "images").is_dir():
         return "zip"

@@ -309,7 +309,7 @@ class SymsoltOfficialDataModule(OfficialDataModule):
         if not self.root.is_dir():
             raise OfficialDataError(
                 f"{self.root}: no such folder — point data.root at the authors' SYMSOL-T folder holding "
-                "train-45k/ and test-5k/ (README, 'The benchmarks' own files')"
+                "train-45k/ and test-5k/ (docs/data.md, 'The benchmarks' own files')"
             )
         if self.group.name not in ("so3", "se3", "r3so3"):
             raise OfficialDataError(

@@ -35,7 +35,7 @@ from posediff.training.checkpoint_io import (
     temp_path,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 POSEDIFF = Path(sys.executable).with_name("posediff")
 HOST = checkpoint_io._host()
 

@@ -24,7 +24,7 @@ from posediff import hardware
 from posediff.config import register_resolvers
 from posediff.models import base as module_base
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 TOY = ["+experiment=toy_so3", "data.num_train=64", "data.batch_size=8", "module.num_noisy=4",
        "denoiser.hidden_dim=16"]  # fmt: skip
 

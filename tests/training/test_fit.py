@@ -22,7 +22,7 @@ TINY = [
     "module.lr=2e-3",
     "denoiser.hidden_dim=128",
     # the reference embedding: smoother, so it learns the circles and translations within 400 steps
-    # (the toys' faster frequencies pay off only over thousands of steps, README toy section)
+    # (the toys' faster frequencies pay off only over thousands of steps, docs/sampling.md, the toy)
     "denoiser.pose_min_period=1.0",
     "denoiser.pose_max_period=1e4",
     "eval.num_samples=64",
@@ -45,7 +45,7 @@ def test_tiny_toy_learns(experiment: str, tmp_path: Path) -> None:
     after = metrics["after"]["default"]["10"]["overall"]["spread_deg"]
     if experiment == "toy_so3":
         assert after < 0.6 * before, f"spread {before:.1f}° untrained → {after:.1f}° trained"
-    else:  # SE(3): 800 steps learn the translation; the rotation needs far longer (README toy table)
+    else:  # SE(3): 800 steps learn the translation; the rotation needs far longer (docs/sampling.md, the toy table)
         t_before = metrics["before"]["overall"]["translation_error"]
         t_after = metrics["after"]["default"]["10"]["overall"]["translation_error"]
         assert t_after < 0.6 * t_before

@@ -1,9 +1,13 @@
-"""``posediff <command> [overrides]``: a thin layer over Hydra that dispatches to ``posediff.tasks``.
+"""``posediff <command> [overrides]``: one table of commands over Hydra.
 
 Each command that takes configuration has a primary config ``conf/<command>.yaml`` and accepts
-everything Hydra does (``key=value`` overrides, ``-m`` multirun, ``--cfg job``, ``--help``).
+everything Hydra does (``key=value`` overrides, ``-m`` multirun, ``--cfg job``, ``--help``); its code is
+``posediff.cli.commands.<verb>.run(cfg) -> int``, imported when the command runs.
 """
 
+from __future__ import annotations
+
+import importlib
 import os
 import re
 import sys
@@ -11,63 +15,86 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-_PKG = Path(__file__).resolve().parent
+from .errors import DISK_ERRNOS, disk_line, fail, hydra_line, one_line
+
+_PKG = Path(__file__).resolve().parents[1]  # src/posediff (or site-packages/posediff)
 
 
 @dataclass(frozen=True)
 class Command:
+    """A ``posediff`` command: its one-line ``help``, its primary Hydra ``config`` (``None``: none) and
+    ``run``, the ``module:function`` under :mod:`posediff.cli.commands` that does it."""
+
     help: str
-    config: str | None  # primary Hydra config name; None for commands that take no config
+    config: str | None
+    run: str | None  # None: a table of subcommands (``data``: :data:`DATA_COMMANDS`)
+
+    def load(self) -> Callable[..., int]:
+        module, _, function = str(self.run).partition(":")
+        return getattr(importlib.import_module(f"posediff.cli.commands.{module}"), function)
 
 
 COMMANDS: dict[str, Command] = {
-    "groups": Command("list the registered Lie groups and their tensor layouts", None),
-    "check": Command("run the Lie group contract on a group from config: posediff check group=so3", "check"),
-    "fit": Command("train a score model and evaluate it: posediff fit +experiment=toy_so3", "fit"),
+    "groups": Command("list the registered Lie groups and their tensor layouts", None, "groups:run"),
+    "check": Command("run the Lie group contract on a group from config: posediff check group=so3", "check",
+                     "check:run"),
+    "fit": Command("train a score model and evaluate it: posediff fit +experiment=toy_so3", "fit", "fit:run"),
     "pretrain": Command(
         "train the image encoder by symmetry-aware regression on posediff's renders, write its weights: "
         "posediff pretrain [out=FILE]",
         "pretrain",
+        "fit:pretrain",
     ),
     "eval": Command(
-        "evaluate a checkpoint: posediff eval ckpt_path=CKPT [-m sampler.num_steps=5,10,50,100]", "eval"
+        "evaluate a checkpoint: posediff eval ckpt_path=CKPT [-m sampler.num_steps=5,10,50,100]", "eval",
+        "eval:run",
     ),
     "predict": Command(
         "pose hypotheses, modes and plots for one image: posediff predict ckpt_path=CKPT image=IMG.png",
         "predict",
+        "predict:run",
     ),
     "export": Command(
         "write a checkpoint's encoder, denoiser and sampling loop for other runtimes: "
         "posediff export ckpt_path=CKPT format=onnx|torchscript|exported_program out=DIR",
         "export",
+        "export:run",
     ),
     "distill": Command(
         "a few-step student of a trained diffusion model, as a normal checkpoint: "
         "posediff distill ckpt_path=TEACHER steps=5 [max_steps=N] [out=FILE]",
         "distill",
+        "distill:run",
     ),
     "score": Command(
         "score a BOP19 results CSV (any method's) on a BOP dataset: posediff score csv=PATH data.root=DIR",
         "score",
+        "score:run",
     ),
-    "report": Command("one table from an eval multirun: posediff report dir=multirun/eval/<stamp>", "report"),
+    "report": Command("one table from an eval multirun: posediff report dir=multirun/eval/<stamp>", "report",
+                      "report:run"),
     "demo": Command(
         "render a small SYMSOL-T, train `quickstart` on the CPU, evaluate, predict: posediff demo [out=DIR] [fit overrides]",
         None,
+        "demo:run",
     ),
-    "data": Command("make datasets: posediff data render|grid|make-bop [key=value ...]", None),
-}
+    "data": Command("make datasets: posediff data render|grid|make-bop [key=value ...]", None, None),
+}  # fmt: skip
 
 #: ``posediff data <subcommand>``.
 DATA_COMMANDS: dict[str, Command] = {
     "render": Command(
         "render a SYMSOL / SYMSOL-T split into shards: posediff data render dataset=symsolt split=train out=DIR",
         "render",
+        "data:render",
     ),
-    "grid": Command("a picture of the five shapes: posediff data grid out=symsolt_grid.png", "grid"),
+    "grid": Command(
+        "a picture of the five shapes: posediff data grid out=symsolt_grid.png", "grid", "data:grid"
+    ),
     "make-bop": Command(
         "a small BOP-format dataset (3 objects, PBR/real/test splits): posediff data make-bop out=DIR",
         "make_bop",
+        "data:make_bop",
     ),
 }
 
@@ -98,9 +125,10 @@ def usage() -> str:
     return "\n".join(lines)
 
 
-def _fail(message: str, code: int = 2, prefix: str = "posediff") -> int:
-    print(f"{prefix}: {message}", file=sys.stderr)
-    return code
+def input_error_line(e: BaseException) -> str | None:
+    """The one line of an error the user can fix (:func:`posediff.cli.errors.one_line`), also when Hydra
+    or a DataLoader worker wrapped it; ``None`` for anything else (a bug, shown with its traceback)."""
+    return one_line(e)
 
 
 def _unknown_config_choice(args: Sequence[str], conf: Path) -> str | None:
@@ -120,14 +148,6 @@ def _unknown_config_choice(args: Sequence[str], conf: Path) -> str | None:
         if value not in options:
             return f"unknown {key} {value!r}; available: {', '.join(options)}"
     return None
-
-
-def input_error_line(e: BaseException) -> str | None:
-    """The one line of an error the user can fix (:func:`posediff.errors.one_line`), also when Hydra
-    or a DataLoader worker wrapped it; ``None`` for anything else (a bug, shown with its traceback)."""
-    from .errors import one_line
-
-    return one_line(e)
 
 
 #: options whose values are paths: ``~`` is expanded, and characters Hydra's grammar reserves
@@ -167,7 +187,7 @@ def _run_dir_problem(name: str, args: Sequence[str]) -> str | None:
 
     A folder that holds another run's files (:data:`RUN_FILES`) is refused — runs never mix — except
     for ``fit`` resuming a checkpoint of that very folder (``ckpt_path=<dir>/checkpoints/…``)."""
-    from ._io import OutputFolderError, check_output_dir
+    from .._io import OutputFolderError, check_output_dir
 
     multirun = any(a in ("-m", "--multirun") for a in args)
     key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
@@ -197,90 +217,47 @@ def _run_dir_problem(name: str, args: Sequence[str]) -> str | None:
     return None
 
 
-def _record_failure(name: str, code: int, message: str | None) -> None:
-    """In a multirun, a failed job leaves ``failed.json`` in its folder for ``posediff report``."""
-    try:
-        from hydra.core.hydra_config import HydraConfig
-        from hydra.types import RunMode
-
-        hc = HydraConfig.get()
-        if hc.mode != RunMode.MULTIRUN:
-            return
-        from ._io import atomic_write_json
-
-        atomic_write_json(
-            Path(hc.runtime.output_dir) / "failed.json",
-            {"command": name, "exit_code": code, "message": message, "overrides": list(hc.overrides.task)},
-        )
-    except Exception:  # noqa: BLE001 - the record is a courtesy; the exit code already says it
-        pass
-
-
 def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
+    """``cmd`` under ``hydra.main`` with ``args``: the command-line checks Hydra does not make first
+    (an unknown config choice, an unwritable or occupied run folder), then every numeric option
+    (:func:`posediff.options.check_options`), then ``cmd.run``; Hydra's own errors as one line."""
     import hydra
     from omegaconf import DictConfig
 
-    from . import tasks
-    from .config import new_run_id, register_resolvers
-    from .data.bop import commands as bop_commands
-    from .data.symsol import commands as symsol_commands
-    from .errors import hydra_line
-    from .options import check_options
+    from ..config import new_run_id, register_resolvers
+    from ..options import check_options
+    from .errors import reports_input_errors
 
     register_resolvers()
     new_run_id()  # outputs/<command>/<time>_<token>: a folder of its own even in the same second
-    task: Callable[[DictConfig], int] = {
-        "check": tasks.check_group,
-        "fit": tasks.fit,
-        "pretrain": tasks.pretrain,
-        "eval": tasks.evaluate_checkpoint,
-        "predict": tasks.predict,
-        "report": tasks.report,
-        "score": tasks.score,
-        "export": tasks.export_checkpoint,
-        "distill": tasks.distill,
-        "data render": symsol_commands.render_data,
-        "data grid": symsol_commands.render_grid,
-        "data make-bop": bop_commands.make_bop,
-    }[name]
     conf = config_dir()
     prefix = f"posediff {name}"
     if not (conf / f"{cmd.config}.yaml").exists():
-        return _fail(
-            f"no config {cmd.config}.yaml in {conf} (set POSEDIFF_CONFIG_DIR to a posediff conf/ folder)"
+        return fail(
+            "posediff",
+            f"no config {cmd.config}.yaml in {conf} (set POSEDIFF_CONFIG_DIR to a posediff conf/ folder)",
         )
     multirun = any(a in ("-m", "--multirun") for a in args)
     plain = [a if "=" not in a or not a.partition("=")[2].startswith("~") else
              f"{a.partition('=')[0]}={os.path.expanduser(a.partition('=')[2])}" for a in args]  # fmt: skip
     problem = _unknown_config_choice(plain, conf)
     if problem:
-        return _fail(problem)
+        return fail("posediff", problem)
     problem = _run_dir_problem(name, plain)
     if problem:
-        return _fail(problem, prefix=prefix)
+        return fail(prefix, problem)
+    task = cmd.load()
     codes: list[int] = []
     state = {"in_task": False}
 
-    def _main(cfg: DictConfig) -> None:
-        from omegaconf.errors import MissingMandatoryValue
+    @reports_input_errors(name)
+    def checked(cfg: DictConfig) -> int:
+        check_options(cfg)  # every numeric option, before anything is built
+        return task(cfg)
 
+    def _main(cfg: DictConfig) -> None:
         state["in_task"] = True
-        message = None
-        try:
-            check_options(cfg)  # every numeric option, before anything is built
-            code = task(cfg)
-        except MissingMandatoryValue as e:
-            key = e.full_key or "a key"
-            message = f"{key} is required ({key}=...; posediff {name} --help lists the options)"
-            code = _fail(message, prefix=prefix)
-        except Exception as e:  # noqa: BLE001 - input errors become one line; others propagate
-            message = input_error_line(e)
-            if message is None:
-                raise
-            code = _fail(message, prefix=prefix)
-        codes.append(int(code or 0))
-        if code:
-            _record_failure(name, int(code), message)
+        codes.append(checked(cfg))
 
     # argparse cannot take overrides on both sides of a flag: `posediff eval a=1 -m b=1,2` is
     # documented usage, so Hydra's -m/--multirun goes first
@@ -291,24 +268,25 @@ def _run_hydra(name: str, cmd: Command, args: list[str]) -> int:
     os.environ["POSEDIFF_COMMAND"] = name
     user_full_error = os.environ.get("HYDRA_FULL_ERROR")
     os.environ.setdefault("HYDRA_FULL_ERROR", "1")  # Hydra raises instead of printing 3-6 lines; see below
-    sys.argv = [str(_PKG / "_relaunch.py"), *flags, *rest]
+    sys.argv = [str(Path(__file__).resolve().parent / "_relaunch.py"), *flags, *rest]
     try:
         hydra.main(config_path=str(conf), config_name=cmd.config, version_base="1.3")(_main)()
     except Exception as e:
         if user_full_error or state["in_task"]:
             raise  # a bug in a task (input errors were taken above), or the user asked for Hydra's trace
-        message = hydra_line(e, rest) or input_error_line(e)
+        message = hydra_line(e, rest) or one_line(e)
         if message is None:
             raise
-        return _fail(message, prefix=prefix)
+        return fail(prefix, message)
     finally:
         sys.argv = argv
         if user_full_error is None:
             os.environ.pop("HYDRA_FULL_ERROR", None)
     if len(codes) > 1 and any(codes):
         failed = sum(1 for c in codes if c)
-        print(f"{prefix}: {failed} of {len(codes)} jobs failed (each said why above; posediff report lists them)",
-              file=sys.stderr)  # fmt: skip
+        fail(
+            prefix, f"{failed} of {len(codes)} jobs failed (each said why above; posediff report lists them)"
+        )
     return max(codes, default=0)
 
 
@@ -316,14 +294,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     """``posediff <command> ...``: the exit code (0 ok, 2 bad input, 130 interrupted, 141 output
     closed early — ``posediff ... | head -1`` ends quietly, as Unix tools do)."""
     try:
-        code = _main(argv)
+        code = _dispatch(list(sys.argv[1:] if argv is None else argv))
         sys.stdout.flush()  # a full or closed stdout fails here, not in the interpreter's exit
         return code
     except KeyboardInterrupt as e:
         what = f"{e}; " if str(e) else ""
-        print(f"posediff: interrupted (Ctrl-C); {what}files already written are whole (written to temporary "
-              "names, then renamed)", file=sys.stderr)  # fmt: skip
-        return 130
+        return fail("posediff", f"interrupted (Ctrl-C); {what}files already written are whole (written to "
+                    "temporary names, then renamed)", 130)  # fmt: skip
     except BrokenPipeError:
         _silence_stdout()
         return 141
@@ -333,13 +310,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 141
         raise
     except OSError as e:
-        from .errors import DISK_ERRNOS, disk_line
-
         if e.errno not in DISK_ERRNOS:
             raise
         _silence_stdout()
-        print(f"posediff: {disk_line(e)}", file=sys.stderr)
-        return 2
+        return fail("posediff", disk_line(e))
 
 
 def _silence_stdout() -> None:
@@ -351,15 +325,16 @@ def _silence_stdout() -> None:
         pass
 
 
-def _main(argv: Sequence[str] | None = None) -> int:
-    args = list(sys.argv[1:] if argv is None else argv)
+def _dispatch(args: list[str]) -> int:
     if not args or args[0] in ("-h", "--help", "help"):
         print(usage())
         return 0
     name, rest = args[0], args[1:]
     cmd = COMMANDS.get(name)
     if cmd is None:
-        return _fail(f"unknown command {name!r}; available: {', '.join(COMMANDS)} (see posediff --help)")
+        return fail(
+            "posediff", f"unknown command {name!r}; available: {', '.join(COMMANDS)} (see posediff --help)"
+        )
     if name == "data":
         sub = rest[0] if rest else ""
         if sub in ("", "-h", "--help"):
@@ -368,104 +343,19 @@ def _main(argv: Sequence[str] | None = None) -> int:
             print("\n".join(f"  {k:<{width}}  {c.help}" for k, c in DATA_COMMANDS.items()))
             return 0 if sub else 2
         if sub not in DATA_COMMANDS:
-            return _fail(f"unknown data subcommand {sub!r}; available: {', '.join(DATA_COMMANDS)}")
+            return fail("posediff", f"unknown data subcommand {sub!r}; available: {', '.join(DATA_COMMANDS)}")
         return _run_hydra(f"data {sub}", DATA_COMMANDS[sub], rest[1:])
-    if name == "demo":
-        if rest and rest[0] in ("-h", "--help"):
-            print(f"posediff demo: {cmd.help}")
-            return 0
-        return _demo(rest)
-    if cmd.config is None:
-        if rest and rest[0] in ("-h", "--help"):
-            print(f"posediff {name}: {cmd.help}")
-            return 0
-        if rest:
-            return _fail(f"{name} takes no arguments, got {' '.join(rest)}")
-        from . import tasks
-
-        return tasks.list_groups()
-    return _run_hydra(name, cmd, rest)
-
-
-def _demo(args: list[str]) -> int:
-    """``posediff demo``: the README's first run, made of the other commands (each its own Hydra run).
-
-    Renders the ``cpu``-preset SYMSOL-T at 128 px (skipped when already there), trains and evaluates
-    ``+experiment=quickstart`` (before and after), and predicts one test image each of a
-    tetrahedron, a cube and a cylinder. Everything lands in ``out`` (default ``outputs/demo``),
-    which is replaced only when the whole run succeeded, and only if an earlier demo made it (its
-    ``.posediff-output`` marker; anything else is refused up front, ``posediff._io``).
-    """
-    import time
-
-    from ._io import OutputFolderError, check_output_dir, make_output_dir, remove_own_dir, replace_dir
-
-    out = Path("outputs/demo")
-    fit_overrides = []
-    for a in args:
-        if a.startswith("out="):
-            out = Path(a.split("=", 1)[1])
-        else:
-            fit_overrides.append(a)
-    try:  # before any work: a folder posediff did not make is never replaced or deleted
-        check_output_dir(out, "posediff demo")
-        partial = out.with_name(out.name + ".partial")
-        remove_own_dir(partial, "posediff demo")
-        make_output_dir(partial, "posediff demo")
-    except OutputFolderError as e:
-        print(f"posediff demo: {e}", file=sys.stderr)
-        return 2
-    start = time.perf_counter()
-    data_root = "data/symsolt_uniform_cpu128"  # the cpu preset at 128 px (quickstart crops 64 px from it)
-    for split in ("train", "test"):
-        code = main(
-            ["data", "render", "dataset=symsolt", f"split={split}", "image_size=128", f"out={data_root}",
-             "progress=false"]
-        )  # fmt: skip
-        if code:
-            return code
-    fit_dir = partial / "fit"
-    code = main(
-        [
-            "fit",
-            "+experiment=quickstart",
-            f"data.root={data_root}",
-            f"hydra.run.dir={fit_dir}",
-            *fit_overrides,
-        ]
-    )
-    if code:
-        return code
-    ckpt = fit_dir / "checkpoints" / "last.ckpt"
-    for shape in ("tet", "cube", "cyl"):
-        extra = ["trajectory=true"] if shape == "tet" else []
-        code = main(
-            ["predict", f"ckpt_path={ckpt}", "index=0", f"+data.shapes=[{shape}]", *extra,
-             f"hydra.run.dir={partial / f'predict_{shape}'}"]
-        )  # fmt: skip
-        if code:
-            return code
-    try:
-        replace_dir(partial, out, "posediff demo")
-    except OutputFolderError as e:
-        print(f"posediff demo: {e} (the finished run is in {partial})", file=sys.stderr)
-        return 2
-    minutes = (time.perf_counter() - start) / 60
-    summary = (out / "fit" / "metrics.md").read_text().split("## untrained model")[0]
-    print(f"\n{summary.strip()}\n")
-    print(f"demo finished in {minutes:.1f} min")
-    print(f"metrics:  {out / 'fit' / 'metrics.md'} (and metrics.json)")
-    print("pictures: " + " ".join(str(p) for p in sorted(out.glob("predict_*/*.png"))))
-    print(f"model:    {out / 'fit' / 'checkpoints' / 'last.ckpt'}")
-    print(
-        f"next:     posediff eval ckpt_path={out / 'fit' / 'checkpoints' / 'last.ckpt'} -m sampler.num_steps=5,10,50,100"
-    )
-    return 0
+    if cmd.config is not None:
+        return _run_hydra(name, cmd, rest)
+    if rest and rest[0] in ("-h", "--help"):
+        print(f"posediff {name}: {cmd.help}")
+        return 0
+    return cmd.load()(rest)
 
 
 def entrypoint() -> None:
     sys.exit(main())
 
 
-if __name__ == "__main__":
-    entrypoint()
+__all__ = ["COMMANDS", "DATA_COMMANDS", "Command", "PATH_KEYS", "config_dir", "entrypoint", "input_error_line",
+           "main", "prepare_args", "usage"]  # fmt: skip

@@ -36,7 +36,7 @@ def symsol(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_the_long_experiment_names_the_curve_callback() -> None:
-    text = (Path(__file__).resolve().parents[1] / "conf" / "experiment" / "symsolt_cpu_long.yaml").read_text()
+    text = (Path(__file__).resolve().parents[2] / "conf" / "experiment" / "symsolt_cpu_long.yaml").read_text()
     assert f"_target_: {CURVE}" in text  # the index 4 overrides above rely on it being the fifth
 
 

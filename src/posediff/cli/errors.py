@@ -1,7 +1,8 @@
 """The one place where an error a user caused becomes one line.
 
 ``posediff <command>`` prints ``posediff <command>: <one line>`` and exits 2 for every error that
-:func:`one_line` recognises; anything else is a bug and keeps its traceback. Recognised are:
+:func:`one_line` recognises (:func:`reports_input_errors`, the decorator every command's ``run`` gets);
+anything else is a bug and keeps its traceback. Recognised are:
 
 * posediff's own input errors — any ``ValueError`` / ``OSError`` subclass defined in a posediff
   module (checkpoints, data, options, outputs), also when Hydra, Lightning or a DataLoader worker
@@ -11,25 +12,40 @@
   temporary name in its folder first, so nothing half-written is left under a final name;
 * Hydra's own command-line errors (:func:`hydra_line`): an unknown key (with the closest known
   ones), a config group given twice, an override its grammar cannot parse (with how to quote it).
+
+Where a command builds what the user described (data, a module, a checkpoint's run), errors of the
+libraries it calls are the user's too (a ``ValueError`` from a data module wrapped by Hydra's
+``instantiate``): :func:`user_input` marks such a stretch, and turns them into :class:`InputError`.
 """
 
 from __future__ import annotations
 
 import difflib
 import errno
+import functools
 import re
-from collections.abc import Iterator
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
 
 #: ``errno`` values that mean "the disk cannot take the file", not a bug.
 DISK_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO, errno.EFBIG}
 
 
-def _chain(e: BaseException | None, limit: int = 12) -> Iterator[BaseException]:
+class InputError(ValueError):
+    """An input the user can fix; its message is the one line ``posediff <command>`` prints."""
+
+
+def chain(e: BaseException | None, *, context: bool = True, limit: int = 12) -> Iterator[BaseException]:
+    """``e`` and the exceptions behind it: each one's ``__cause__`` (``raise ... from``), or with
+    ``context`` also its ``__context__`` (raised while handling another)."""
     seen: set[int] = set()
     while e is not None and id(e) not in seen and len(seen) < limit:
         seen.add(id(e))
         yield e
-        e = e.__cause__ or e.__context__
+        e = e.__cause__ or (e.__context__ if context else None)
 
 
 def first_line(e: BaseException) -> str:
@@ -84,11 +100,11 @@ def disk_line(e: OSError) -> str:
 
 def one_line(e: BaseException) -> str | None:
     """The one line for an error the user can fix (module docstring), else ``None`` (a bug)."""
-    for err in _chain(e):
+    for err in chain(e):
         cls = type(err)
         if cls.__module__.startswith("posediff") and issubclass(cls, (ValueError, OSError)):
             return _posediff_line(err)
-    for err in _chain(e):
+    for err in chain(e):
         if isinstance(err, OSError) and err.errno in DISK_ERRNOS:
             return disk_line(err)
         if isinstance(err, RuntimeError) and re.search(
@@ -96,6 +112,81 @@ def one_line(e: BaseException) -> str | None:
         ):
             return disk_line(OSError(errno.ENOSPC, "no space left on device"))
     return None
+
+
+@contextmanager
+def user_input(*types: type[BaseException]) -> Iterator[None]:
+    """A stretch of a command that builds what the user described: an exception of ``types`` (default
+    ``ValueError``, ``FileNotFoundError``) raised inside — itself, or behind the wrappers of Hydra's
+    ``instantiate`` (its ``__cause__`` chain) — becomes an :class:`InputError` with its one line."""
+    types = types or (ValueError, FileNotFoundError)
+    try:
+        yield
+    except InputError:
+        raise
+    except Exception as e:
+        err = next((x for x in chain(e, context=False) if isinstance(x, types)), None)
+        if err is None:
+            raise
+        raise InputError(_posediff_line(err)) from e
+
+
+def record_failure(name: str, code: int, message: str | None) -> None:
+    """In a multirun, a failed job leaves ``failed.json`` in its folder for ``posediff report``."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        from .._io import atomic_write_json
+
+        hc = HydraConfig.get()
+        if hc.mode != RunMode.MULTIRUN:
+            return
+        atomic_write_json(
+            Path(hc.runtime.output_dir) / "failed.json",
+            {"command": name, "exit_code": code, "message": message, "overrides": list(hc.overrides.task)},
+        )
+    except Exception:  # noqa: BLE001 - the record is a courtesy; the exit code already says it
+        pass
+
+
+def fail(prefix: str, message: str, code: int = 2) -> int:
+    """Print ``prefix: message`` on stderr; the exit code."""
+    print(f"{prefix}: {message}", file=sys.stderr)
+    return code
+
+
+def reports_input_errors(name: str) -> Callable[[Callable[..., int | None]], Callable[..., int]]:
+    """The decorator of every command's ``run(cfg) -> int``: an input error (:func:`one_line`: posediff's
+    own, a full disk, also behind Hydra's and DataLoader workers' wrappers) or a required key left
+    empty becomes ``posediff <name>: <one line>`` on stderr and exit code 2; in a multirun the job's
+    failure is recorded (:func:`record_failure`). Anything else propagates with its traceback."""
+    prefix = f"posediff {name}"
+
+    def wrap(run: Callable[..., int | None]) -> Callable[..., int]:
+        @functools.wraps(run)
+        def guarded(cfg: Any, *args: Any, **kwargs: Any) -> int:
+            from omegaconf.errors import MissingMandatoryValue
+
+            try:
+                code = int(run(cfg, *args, **kwargs) or 0)
+                message = None
+            except MissingMandatoryValue as e:
+                key = e.full_key or "a key"
+                message = f"{key} is required ({key}=...; posediff {name} --help lists the options)"
+                code = fail(prefix, message)
+            except Exception as e:  # noqa: BLE001 - input errors become one line; others propagate
+                message = one_line(e)
+                if message is None:
+                    raise
+                code = fail(prefix, message)
+            if code:
+                record_failure(name, code, message)
+            return code
+
+        return guarded
+
+    return wrap
 
 
 # --------------------------------------------------------------------------------------------------
@@ -172,4 +263,5 @@ def _quoted(key: str, value: str) -> str:
     return "'" + hydra_arg.replace("'", "'\\''") + "'"
 
 
-__all__ = ["DISK_ERRNOS", "disk_line", "first_line", "hydra_line", "one_line"]
+__all__ = ["DISK_ERRNOS", "InputError", "chain", "disk_line", "fail", "first_line", "hydra_line", "one_line",
+           "record_failure", "reports_input_errors", "user_input"]  # fmt: skip

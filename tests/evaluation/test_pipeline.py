@@ -2,7 +2,7 @@
 
 Rendering happens on the fly (``data.mode=render``, 32 px, a handful of images), so no dataset
 has to exist; the model trains for two steps — these tests check the plumbing, not learning
-(that is ``make demo`` and the README's tables).
+(that is ``make demo`` and docs/image-model.md's tables).
 """
 
 import json

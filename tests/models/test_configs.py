@@ -13,7 +13,7 @@ from posediff.diffusion import Diffusion, NoiseKernel, NoiseSchedule, Sampler
 from posediff.models import PoseDiffusionModule, PoseModule
 from posediff.nn import pose_input_dim
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
+CONF = Path(__file__).resolve().parents[2] / "conf"
 EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
 # trainer paths use ${hydra:runtime.output_dir}; outside a Hydra run, point them at a folder
 NO_HYDRA = ["trainer.default_root_dir=.", "trainer.logger=null", "trainer.callbacks=null"]

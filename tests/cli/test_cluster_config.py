@@ -1,5 +1,5 @@
 """Cluster sweeps: the Hydra submitit launcher's configs compose with posediff's (no SLURM here to run
-them; README "Sweeps on a cluster")."""
+them; docs/cluster.md)."""
 
 import pytest
 from hydra import compose, initialize_config_dir

@@ -23,7 +23,7 @@ import torch
 
 from posediff.data.resumable import ResumableDataLoader
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 POSEDIFF = Path(sys.executable).with_name("posediff")
 
 TINY = [
