@@ -111,3 +111,24 @@ def test_backticked_paths_exist(page: Path) -> None:
         if not found:
             missing.append(token)
     assert not missing, f"{_name(page)} names paths that do not exist: {missing}"
+
+
+def _rows(text: str) -> set[str]:
+    """A table's data rows, whitespace and emphasis dropped (the header and the rule are not data)."""
+    rows = set()
+    for line in text.splitlines():
+        cells = [c.strip(" *`") for c in line.strip().strip("|").split("|")]
+        if line.startswith("|") and len(cells) >= 3 and not set("".join(cells)) <= set("-: "):
+            rows.add("|".join(cells))
+    return rows
+
+
+@pytest.mark.parametrize("page", DOCS, ids=_name)
+def test_study_tables_live_once(page: Path) -> None:
+    """A study's table lives in benchmarks/results/*.md (written by its script); docs link to it and
+    do not copy its rows (the README's one results table is the exception)."""
+    results = {p.name: _rows(p.read_text()) for p in (ROOT / "benchmarks" / "results").glob("*.md")}
+    mine = _rows(page.read_text())
+    # a header row shared with a results table is fine; data rows copied verbatim are not
+    copied = {name: len(mine & rows) for name, rows in results.items() if len(mine & rows) > 1}
+    assert not copied, f"{_name(page)} copies rows of {copied}; link to the results file instead"
