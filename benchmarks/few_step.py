@@ -10,7 +10,13 @@ Per row: mean spread over the shapes (°), spread per shape, mode coverage of th
 (share of the symmetry-equivalent poses with a hypothesis within 5°), translation error, seconds
 per input. Rows are appended to the JSON as they finish (``--out``; the Markdown table next to it).
 
-Samplers: ``few_step`` (Euler step of the probability-flow ODE, posediff's deterministic few-step
+Models named ``X`` and ``X_flow`` (or ``X_dsm``) are one family trained at the same budget (score
+matching and flow matching, issue 30); the targets compare each with the family's best 100-NFE spread.
+A flow model runs ``flow_euler`` (uniform times), ``flow_euler_cosine`` (cosine times),
+``flow_euler_rot10`` (FrameFlow's rotation schedule, rate 10) and ``flow_heun``; its student
+(``posediff distill method=reflow``) runs ``flow_euler`` at every budget.
+
+Samplers of a score model: ``few_step`` (Euler step of the probability-flow ODE, posediff's deterministic few-step
 sampler), ``few_step_renoise`` (predict clean, re-noise with fresh noise: the best at 100 in docs/sampling.md
 steps), ``heun`` / ``heun_karras`` (order 2, schedule / Karras σ), ``crouch_grossman`` (order 3),
 ``rkmk`` (order 4).
@@ -34,8 +40,24 @@ DISCRETE = ("tet", "cube", "icosa")
 
 
 def samplers(diffusion: Any) -> dict[str, Any]:
-    from posediff.diffusion import CrouchGrossmanSampler, FewStepSampler, HeunSampler, RKMKSampler
+    from posediff.diffusion import (
+        CrouchGrossmanSampler,
+        FewStepSampler,
+        FlowEulerSampler,
+        FlowHeunSampler,
+        HeunSampler,
+        RKMKSampler,
+    )
 
+    if diffusion.objective == "flow":  # a flow model's own samplers (posediff.diffusion.flow)
+        return {
+            "flow_euler": FlowEulerSampler(diffusion),
+            "flow_euler_cosine": FlowEulerSampler(diffusion, spacing="cosine"),
+            "flow_euler_rot10": FlowEulerSampler(
+                diffusion, rotation_rate=10.0
+            ),  # FrameFlow's rotation schedule
+            "flow_heun": FlowHeunSampler(diffusion),
+        }
     return {
         "few_step": FewStepSampler(diffusion),
         "few_step_renoise": FewStepSampler(diffusion, renoise=1.0),
@@ -115,7 +137,7 @@ def markdown(rows: list[dict[str, Any]], students: dict[str, dict]) -> str:
             )
         lines.append("")
         ref = [r for r in mine if r["kind"] == "teacher" and r["nfe_budget"] == 100]
-        ode = [r for r in ref if r["sampler"] == "heun"]
+        ode = [r for r in ref if r["sampler"] in ("heun", "flow_heun")]
         for r in [r for r in mine if r["nfe"] <= 5 and (r["kind"] == "student" or r["nfe"] == 5)]:
             if not ref:
                 break
@@ -127,19 +149,70 @@ def markdown(rows: list[dict[str, Any]], students: dict[str, dict]) -> str:
                 f"{'within' if ratio <= 1.2 else 'not within'} 1.2×"
             )
             if ode:
-                text += f"; {r['spread_deg'] / ode[0]['spread_deg']:.2f}× the teacher's ODE (heun, {ode[0]['nfe']} NFE, {ode[0]['spread_deg']:.2f}°)"
+                text += f"; {r['spread_deg'] / ode[0]['spread_deg']:.2f}× the teacher's ODE ({ode[0]['sampler']}, {ode[0]['nfe']} NFE, {ode[0]['spread_deg']:.2f}°)"
             text += (
                 f"; coverage {_c(r)} (best 100-NFE: {_c(best)}{'' if not ode else ', ODE: ' + _c(ode[0])})"
             )
             lines.append(text)
         info = students.get(model)
         if info:
+            how = (f"substeps {info.get('substeps')}" if info.get("method", "segment") == "segment"
+                   else f"reflow, {info.get('rounds')} round(s), teacher {info.get('teacher_steps')} flow_heun steps")  # fmt: skip
             lines.append(
                 f"- distillation: {info['updates']} updates, {info['seconds'] / 60:.1f} CPU minutes "
-                f"(substeps {info['substeps']}, {info['num_hypotheses']} hypotheses, reuse {info.get('reuse')})"
+                f"({how}, {info['num_hypotheses']} hypotheses, reuse {info.get('reuse')})"
             )
         lines.append("")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines) + "\n" + "\n" + targets(rows)
+
+
+def family(model: str) -> str:
+    """``toy_so3_flow`` and ``toy_so3_dsm`` (and ``toy_so3``) are one family: the same data and budget."""
+    for suffix in ("_flow", "_dsm"):
+        if model.endswith(suffix):
+            return model[: -len(suffix)]
+    return model
+
+
+def targets(rows: list[dict[str, Any]]) -> str:
+    """Issue 30's targets per family: at 5 NFE within 1.2× of the family's best 100-NFE spread with
+    coverage no lower; at 1 NFE after straightening (a student) within 2×."""
+    out = ["## Targets (issue 30)", "",
+           "| model | best at 5 NFE | ×best-100 | coverage vs best-100's | 5-NFE target | best student at 1 NFE | × | 1-NFE target |",
+           "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for fam in dict.fromkeys(family(r["model"]) for r in rows):
+        mine = [r for r in rows if family(r["model"]) == fam]
+        ref = [r for r in mine if r["kind"] == "teacher" and r["nfe_budget"] == 100]
+        if not ref:
+            continue
+        best = min(ref, key=lambda q: q["spread_deg"])
+        out.append(
+            f"| **{fam}** family best at 100 NFE: {best['model']} {best['sampler']} | {best['spread_deg']:.2f}° | 1.00 | {_c(best)} | | | | |"
+        )
+        for model in dict.fromkeys(r["model"] for r in mine):
+            five = [r for r in mine if r["model"] == model and r["nfe"] <= 5 and r["nfe_budget"] == 5]
+            one = [r for r in mine if r["model"] == model and r["kind"] == "student" and r["nfe"] == 1]
+            cells = [model]
+            if five:
+                f = min(five, key=lambda q: q["spread_deg"])
+                ratio = f["spread_deg"] / best["spread_deg"]
+                cov_ok = (
+                    f["coverage_mean"] is None
+                    or best["coverage_mean"] is None
+                    or f["coverage_mean"] >= best["coverage_mean"]
+                )
+                cells += [f"{f['sampler']} {f['spread_deg']:.2f}°", f"{ratio:.2f}", f"{_c(f)} vs {_c(best)}",
+                          "**met**" if ratio <= 1.2 and cov_ok else "not met"]  # fmt: skip
+            else:
+                cells += ["", "", "", ""]
+            if one:
+                o = min(one, key=lambda q: q["spread_deg"])
+                r1 = o["spread_deg"] / best["spread_deg"]
+                cells += [f"{o['spread_deg']:.2f}°", f"{r1:.2f}", "**met**" if r1 <= 2.0 else "not met"]
+            else:
+                cells += ["", "", ""]
+            out.append("| " + " | ".join(cells) + " |")
+    return "\n".join(out) + "\n"
 
 
 def compact(rows: list[dict[str, Any]]) -> str:
@@ -238,13 +311,26 @@ def main() -> int:
                 save()
         if model in studs:
             student = load_checkpoint(studs[model])
-            steps = int(student.sampler.num_steps)
-            nfe = student.sampler.network_calls(steps)
-            res = evaluate_data(student, dm, num_steps=steps, **kw)
-            result["rows"].append(_row(model, "student", f"distilled few_step {steps}", nfe, nfe, steps, res))
-            result["students"][model] = dict(student.config.get("distill", {}))
-            print(f"{model} student NFE {nfe}: {res['overall']['spread_deg']:.2f}°", flush=True)
-            save()
+            info = dict(student.config.get("distill", {}))
+            result["students"][model] = info
+            own = type(student.sampler)(student.diffusion)
+            label = f"{info.get('method', 'segment')} student ({own.name})"
+            budgets = (
+                args.nfe
+                if student.diffusion.objective == "flow"
+                else [own.network_calls(int(student.sampler.num_steps))]
+            )
+            seen = set()
+            for budget in budgets:
+                steps = own.steps_for_nfe(budget)
+                nfe = own.network_calls(steps)
+                if nfe in seen or nfe > budget:
+                    continue
+                seen.add(nfe)
+                res = evaluate_data(student, dm, num_steps=steps, sampler=own, **kw)
+                result["rows"].append(_row(model, "student", label, budget, nfe, steps, res))
+                print(f"{model} {label} NFE {nfe}: {res['overall']['spread_deg']:.2f}°", flush=True)
+                save()
     save()
     print(markdown(result["rows"], result["students"]))
     return 0

@@ -213,3 +213,37 @@ def test_distill_an_image_model_and_refuse_a_regression_one(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not a diffusion model" in err[0], err
     assert not (tmp_path / "reg" / "checkpoints").exists()
+
+
+def test_flow_image_model_fits_reflows_evaluates_and_exports(
+    runs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``+experiment=quickstart_flow`` (flow matching, the same image model) at toy size: fit, eval,
+    ``posediff distill method=reflow`` (one update; the encoder stays the teacher's), export of the
+    student; a regression checkpoint gets one line from ``method=reflow`` too."""
+    flow = [a if a != "+experiment=quickstart" else "+experiment=quickstart_flow" for a in SMALL]
+    run = tmp_path / "flow"
+    assert main(["fit", *flow, f"hydra.run.dir={run}"]) == 0
+    ckpt = run / "checkpoints" / "last.ckpt"
+    teacher = load_checkpoint(ckpt)
+    assert teacher.diffusion.objective == "flow" and teacher.sampler.name == "flow_euler"
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["diffusion"]["objective"] == "flow"
+    out = tmp_path / "student.ckpt"
+    assert main(["distill", f"ckpt_path={ckpt}", "method=reflow", "steps=2", "teacher_steps=2",
+                 "trainer.fast_dev_run=true", "trainer.enable_progress_bar=false", f"out={out}",
+                 f"hydra.run.dir={tmp_path / 'dist'}"]) == 0  # fmt: skip
+    student = load_checkpoint(out)
+    assert student.sampler.name == "flow_euler" and student.sampler.num_steps == 2
+    assert student.config["distill"]["method"] == "reflow"
+    for k, v in teacher.state_dict().items():
+        if k.startswith("encoder."):
+            assert torch.equal(student.state_dict()[k], v), k
+    assert main(["eval", f"ckpt_path={out}", "num_samples=2", f"hydra.run.dir={tmp_path / 'eval'}"]) == 0
+    assert json.loads((tmp_path / "eval" / "metrics.json").read_text())["sampler"] == "flow_euler"
+    assert main(["export", f"ckpt_path={out}", "format=torchscript", f"out={tmp_path / 'ts'}"]) == 0
+    capsys.readouterr()
+    reg = runs["regression"] / "checkpoints" / "last.ckpt"
+    assert main(["distill", f"ckpt_path={reg}", "method=reflow", f"hydra.run.dir={tmp_path / 'reg'}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a diffusion model" in err[0], err

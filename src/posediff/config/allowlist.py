@@ -48,6 +48,8 @@ BUILDABLE: frozenset[str] = frozenset(
         "posediff.diffusion.HeunSampler",
         "posediff.diffusion.CrouchGrossmanSampler",
         "posediff.diffusion.RKMKSampler",
+        "posediff.diffusion.FlowEulerSampler",
+        "posediff.diffusion.FlowHeunSampler",
         # networks and modules
         "posediff.nn.ResNetEncoder",
         "posediff.nn.PoseEncoder",

@@ -12,6 +12,10 @@ The pieces (paper §4; equation numbers follow the tex, see ``docs/conventions.m
 * ``modes`` — cluster samples into weighted modes; ``log_likelihood`` — probability-flow ODE.
 """
 
+from .flow import FlowEulerSampler as FlowEulerSampler
+from .flow import FlowHeunSampler as FlowHeunSampler
+from .flow import FlowOracle as FlowOracle
+from .flow import FlowSampler as FlowSampler
 from .igso3 import IGSO3 as IGSO3
 from .kernels import ConcentratedGaussian as ConcentratedGaussian
 from .kernels import NoiseKernel as NoiseKernel
@@ -57,6 +61,10 @@ __all__ = [
     "CrouchGrossmanSampler",
     "RKMKSampler",
     "MixtureOracle",
+    "FlowSampler",
+    "FlowEulerSampler",
+    "FlowHeunSampler",
+    "FlowOracle",
     "log_likelihood",
     "Modes",
     "modes",

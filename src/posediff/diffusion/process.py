@@ -24,6 +24,19 @@ It bundles the choices that must agree between training and sampling:
     invariant to 2π re-wrapping of the rotation part and weights rotation about twice as much
     as translation for small errors;
 
+* the **objective** (``objective``): ``"dsm"`` — denoising score matching, everything above (the
+  paper); ``"flow"`` — flow matching on the group (beyond the paper; Lipman et al. 2023 in R^n,
+  FrameFlow / FoldFlow on SE(3)): the geodesic interpolant from a prior pose ``X₀`` to the data pose
+  ``X₁``, ``X_t = X₀·Exp(t·Log(X₀⁻¹X₁))`` (on R³×SO(3) per part, on SE(3) the screw — each group's own
+  Exp), and the network regresses the body velocity ``dX_t/dt = X_t·u^`` with the conditional target
+  ``u = Log(X_t⁻¹X₁)/(1−t)``, constant along the geodesic and equal to ``Log(X₀⁻¹X₁)`` (computed so:
+  no division near t = 1). ``X₀`` is Haar rotation × Gaussian translation of std σ_max ·
+  ``translation_scale`` (the ``"haar"`` prior). Time reaches the network as a noise level: ``t`` ↦ the
+  σ whose continuous level is ``(1−t)(L−1)`` (``flow_sigma``), so t = 0 is the top level (the prior)
+  and t = 1 the bottom (the data), and the denoiser, anchor, fold and export are unchanged. Its
+  samplers are ``flow_euler`` and ``flow_heun`` (:mod:`posediff.diffusion.flow`). ``score``,
+  ``output``, ``loss`` and ``weighting`` are the DSM objective's and are not used by it;
+
 * the **prior** of the reverse process (``prior``): ``"kernel"`` — the kernel at σ_max around the
   identity (the paper: "a Gaussian distribution on SE(3)"); ``"haar"`` — Haar-uniform rotation
   with the kernel's σ_max translation; ``"uniform"`` — Haar rotation × U[−b, b]³ translation (the
@@ -42,6 +55,8 @@ from .schedules import NoiseSchedule
 from .score import ScoreTarget
 
 Output = Literal["score", "noise"]
+Objective = Literal["dsm", "flow"]
+OBJECTIVES = ("dsm", "flow")
 Loss = Literal["tangent_l2", "chordal"]
 Prior = Literal["kernel", "haar", "uniform"]
 
@@ -69,6 +84,12 @@ class Diffusion:
         weighting: ``"sigma2"`` (default, λ(σ) = σ²) or ``"none"`` (literal Eq. 6); tangent_l2 only.
         rotation_weight, translation_weight: per-component loss weights (tangent_l2).
         prior: ``"kernel"``, ``"haar"`` or ``"uniform"``; ``prior_bound`` is the box of ``"uniform"``.
+            The flow objective always starts from ``"haar"``.
+        objective: ``"dsm"`` (denoising score matching, the paper) or ``"flow"`` (flow matching on the
+            group, module docstring).
+        flow_t_max: the largest training time of the flow objective (t ~ U[0, flow_t_max]); the
+            network's time input stays off the exact endpoint t = 1, where ``X_t = X₁`` and the
+            conditional target carries no information about the prior.
     """
 
     def __init__(
@@ -84,6 +105,8 @@ class Diffusion:
         translation_weight: float = 1.0,
         prior: Prior = "kernel",
         prior_bound: float = 1.0,
+        objective: Objective = "dsm",
+        flow_t_max: float = 0.999,
     ) -> None:
         self.kernel = kernel
         self.schedule = schedule
@@ -92,6 +115,13 @@ class Diffusion:
         _choice("loss", loss, ("tangent_l2", "chordal"))
         _choice("weighting", weighting, ("sigma2", "none"))
         _choice("prior", prior, ("kernel", "haar", "uniform"))
+        _choice("objective", objective, OBJECTIVES)
+        if not 0.0 < float(flow_t_max) <= 1.0:
+            raise ValueError(f"Diffusion: flow_t_max must be in (0, 1], got {flow_t_max}")
+        self.objective = objective
+        self.flow_t_max = float(flow_t_max)
+        if objective == "flow":
+            prior = "haar"
         if loss == "chordal" and weighting != "sigma2":
             raise ValueError("Diffusion: weighting='none' applies to the tangent_l2 loss only")
         self.output = output
@@ -105,7 +135,8 @@ class Diffusion:
     def __repr__(self) -> str:
         return (
             f"Diffusion({self.kernel!r}, {self.schedule!r}, score={self.score_target.name!r}, "
-            f"output={self.output!r}, loss={self.loss_name!r}, prior={self.prior_name!r})"
+            f"output={self.output!r}, loss={self.loss_name!r}, prior={self.prior_name!r}"
+            + (", objective='flow')" if self.objective == "flow" else ")")
         )
 
     @property
@@ -125,8 +156,10 @@ class Diffusion:
 
         With ``num_noisy = K`` every clean pose gets K independent noisy copies, ``(*b, K, n, n)``
         (the paper uses 256 per image). Each copy draws its own level ``i ~ U{0..L−1}`` unless
-        ``levels`` is given.
+        ``levels`` is given. With the flow objective see :meth:`interpolate`.
         """
+        if self.objective == "flow":
+            return self.interpolate(x0, num_noisy=num_noisy, generator=generator)
         if num_noisy is not None:
             x0 = x0.unsqueeze(-3).expand(*x0.shape[:-2], int(num_noisy), *x0.shape[-2:])
         batch = tuple(x0.shape[:-2])
@@ -139,6 +172,48 @@ class Diffusion:
         return NoisyBatch(
             x_noisy=x_noisy, z=z, sigma=sigma, level=levels, target=self.from_score(score, sigma)
         )
+
+    def interpolate(
+        self,
+        x1: Tensor,
+        *,
+        num_noisy: int | None = None,
+        t: Tensor | None = None,
+        x0: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> NoisyBatch:
+        """The flow objective's training draw: ``X_t = X₀·Exp(t·u)``, ``u = Log(X₀⁻¹X₁)`` between a
+        prior pose ``X₀`` and the data pose ``x1 (*b, n, n)`` (``num_noisy`` copies each, as
+        :meth:`perturb`). ``t ~ U[0, flow_t_max]`` unless given; ``x0`` (a prior draw per copy) is
+        drawn unless given — rectification hands in the pairs it made. ``sigma`` is the network's time
+        input (:meth:`flow_sigma`), ``z`` and ``target`` the body velocity ``u``.
+        """
+        g = self.group
+        if num_noisy is not None:
+            x1 = x1.unsqueeze(-3).expand(*x1.shape[:-2], int(num_noisy), *x1.shape[-2:])
+        batch = tuple(x1.shape[:-2])
+        if t is None:
+            t = torch.rand(batch, generator=generator, dtype=x1.dtype, device=x1.device) * self.flow_t_max
+        t = torch.broadcast_to(t.to(x1.dtype), batch)
+        if x0 is None:
+            x0 = self.prior(batch, generator=generator, dtype=x1.dtype, device=x1.device)
+        u = g.rminus(x0, x1)  # Log(X₀⁻¹X₁) = Log(X_t⁻¹X₁)/(1−t) along the geodesic
+        xt = g.rplus(x0, t.unsqueeze(-1) * u)
+        sigma = self.flow_sigma(t)
+        levels = self.schedule.level(sigma).round().long()
+        return NoisyBatch(x_noisy=xt, z=u, sigma=sigma, level=levels, target=u)
+
+    def flow_sigma(self, t: Tensor | float) -> Tensor:
+        """The noise level that stands for flow time ``t``: the σ whose continuous level
+        (``schedule.level``) is ``(1−t)(L−1)`` — t = 0 the top level, t = 1 the bottom."""
+        t = torch.as_tensor(t, dtype=torch.float64) if not isinstance(t, Tensor) else t
+        log_table = self.schedule.sigmas.log().to(device=t.device, dtype=torch.float64)
+        pos = (1.0 - t.to(torch.float64)).clamp(0.0, 1.0) * (self.schedule.num_levels - 1)
+        lo = pos.floor().long().clamp(0, self.schedule.num_levels - 1)
+        hi = (lo + 1).clamp(max=self.schedule.num_levels - 1)
+        frac = pos - lo.to(torch.float64)
+        out = (log_table[lo] * (1 - frac) + log_table[hi] * frac).exp()
+        return out.to(t.dtype if t.is_floating_point() else torch.get_default_dtype())
 
     def from_score(self, score: Tensor, sigma: Tensor | float) -> Tensor:
         """The network output that represents ``score`` at level σ (inverse of ``to_score``)."""
@@ -156,14 +231,14 @@ class Diffusion:
             raise ValueError(
                 f"Diffusion.loss: output {tuple(output.shape)} vs target {tuple(batch.target.shape)}"
             )
-        if self.loss_name == "chordal":
+        if self.loss_name == "chordal" and self.objective == "dsm":
             g = self.group
             diff = g.exp(output) - g.exp(batch.target.to(output.dtype))
             return diff.square().sum((-2, -1)).mean()
         w = torch.full((self.group.dim,), self.translation_weight, dtype=output.dtype, device=output.device)
         w[self.group.rotation_slice] = self.rotation_weight
         err = (output - batch.target.to(output.dtype)).square() * w
-        if self.weighting == "none":
+        if self.weighting == "none" and self.objective == "dsm":
             err = err / self.kernel.component_sigma(batch.sigma, output).square()
         return err.sum(-1).mean()
 
@@ -172,7 +247,7 @@ class Diffusion:
         components, unweighted by ``rotation_weight`` / ``translation_weight`` — a diagnostic (held-out
         rotation loss, per-part gradients), whatever ``loss`` trains."""
         err = (output - batch.target.to(output.dtype)).square()
-        if self.weighting == "none":
+        if self.weighting == "none" and self.objective == "dsm":
             err = err / self.kernel.component_sigma(batch.sigma, output).square()
         rot = self.group.rotation_slice
         parts = {"rotation": err[..., rot].sum(-1).mean()}
@@ -199,6 +274,8 @@ class Diffusion:
             return g.sample_uniform(
                 shape, generator=generator, device=device, dtype=dtype, bound=self.prior_bound
             )
+        if self.objective == "flow":
+            return self._flow_prior(shape, generator=generator, dtype=dtype, device=device)
         sigma = torch.full(shape, self.schedule.sigma_max, dtype=dtype, device=device)
         z = self.kernel.sample_tangent(sigma, generator=generator)
         x = g.exp(z)
@@ -214,6 +291,21 @@ class Diffusion:
                 x = haar
         return x
 
+    def _flow_prior(
+        self, shape: tuple[int, ...], *, generator: torch.Generator | None, dtype: torch.dtype, device: Any
+    ) -> Tensor:
+        """Haar rotation × N(0, (σ_max · translation_scale)² I) translation: the density
+        ``likelihood.prior_log_prob`` gives for the ``"haar"`` prior, exactly, on every group."""
+        g = self.group
+        x = g.sample_uniform(shape, generator=generator, device=device, dtype=dtype)
+        rot = g.rotation_slice
+        if (rot.stop - rot.start) < g.dim:
+            k = g.matrix_dim - 1
+            std = self.schedule.sigma_max * self.kernel.translation_scale
+            x = x.clone()
+            x[..., :k, k] = std * torch.randn((*shape, k), generator=generator, dtype=dtype, device=device)
+        return x
+
     def describe(self) -> dict[str, Any]:
         """The configuration as plain values (stored with checkpoints and results)."""
         return {
@@ -227,6 +319,7 @@ class Diffusion:
             "output": self.output,
             "loss": self.loss_name,
             "prior": self.prior_name,
+            "objective": self.objective,
         }
 
 

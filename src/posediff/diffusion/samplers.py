@@ -53,8 +53,22 @@ class Sampler(Registered, family=True):
     #: the sampler claims to land on the modes of the exact score, with their weights, at 5 network
     #: evaluations (the ``five_nfe`` contract check holds it to that)
     few_nfe: ClassVar[bool] = False
+    #: the training objective whose network this sampler reads (``Diffusion.objective``): ``"dsm"``
+    #: samplers read a score, ``"flow"`` samplers (:mod:`posediff.diffusion.flow`) a velocity
+    objective: ClassVar[str] = "dsm"
 
     def __init__(self, diffusion: Diffusion, *, num_steps: int | None = None) -> None:
+        model = getattr(diffusion, "objective", "dsm")
+        if model != type(self).objective:
+            kind = {
+                "dsm": "score models (diffusion.objective=dsm)",
+                "flow": "flow models (diffusion.objective=flow)",
+            }
+            fits = sorted(n for n, c in Sampler.registry.items() if c.objective == model)
+            raise ValueError(
+                f"sampler {getattr(self, 'name', type(self).__name__)!r} samples {kind[type(self).objective]}, "
+                f"this model is trained with diffusion.objective={model}; use sampler={' or sampler='.join(fits)}"
+            )
         self.diffusion = diffusion
         if num_steps is not None:  # refused here, when built, not at the end of a training run
             levels = diffusion.schedule.num_levels

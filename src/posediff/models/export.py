@@ -114,10 +114,8 @@ class DenoiserStep(_Wrapper):
 
 
 def _levels(sampler: Any, num_steps: int) -> tuple[list[float], list[float]]:
-    sched = sampler.diffusion.schedule
-    levels = sched.timesteps(num_steps)
-    sig_t = sched.sigma(levels, dtype=torch.float64)
-    sig_p = sampler._next_sigmas(levels, sig_t)
+    """The sampler's own grid (``Sampler.sigma_grid``: noise levels, or a flow sampler's times)."""
+    sig_t, sig_p = sampler.sigma_grid(num_steps)
     return [float(v) for v in sig_t], [float(v) for v in sig_p]
 
 

@@ -17,6 +17,7 @@ from torch.testing import assert_close
 from ..diffusion import (
     ConcentratedGaussian,
     Diffusion,
+    FlowOracle,
     LinearSchedule,
     MixtureOracle,
     NoiseKernel,
@@ -226,6 +227,21 @@ def schedule_contract(schedule: NoiseSchedule, checks: list[str] | None = None) 
 
 
 # ---------------------------------------------------------------------- samplers
+def _objective(make: Callable[[Diffusion], Sampler]) -> str:
+    """The objective whose network a sampler reads (``Sampler.objective``; a partial's class's)."""
+    return getattr(getattr(make, "func", make), "objective", "dsm")
+
+
+def _diffusion(make: Callable[[Diffusion], Sampler], g: LieGroup, prior: str) -> Diffusion:
+    """The test process for ``make``'s sampler: the score's (DSM) or the flow's (Haar prior)."""
+    return Diffusion(ConcentratedGaussian(g), LinearSchedule(), prior=prior, objective=_objective(make))
+
+
+def _oracle(d: Diffusion, centers: torch.Tensor, weights: torch.Tensor | None = None) -> Any:
+    """The exact network of a point-mass mixture for ``d``'s objective: the score or the velocity."""
+    return FlowOracle(d, centers, weights) if d.objective == "flow" else MixtureOracle(d, centers, weights)
+
+
 def _tet_modes() -> torch.Tensor:
     from ..symmetry import symmetry_group
 
@@ -236,10 +252,10 @@ def _sampler_point_mass(make: Callable[[Diffusion], Sampler], device: torch.devi
     """With the exact denoiser of a point mass every sample ends at the point (SO3 and SE3)."""
     for gname in ("so3", "se3"):
         g = get_group(gname)
-        d = Diffusion(ConcentratedGaussian(g), LinearSchedule(), prior="haar")
+        d = _diffusion(make, g, "haar")
         center = g.sample_uniform((1,), generator=_gen(15), dtype=F64, bound=0.5).to(device)
         sampler = make(d)
-        x = sampler.sample(MixtureOracle(d, center), None, 200, 100, _gen(16), dtype=F64, device=device)
+        x = sampler.sample(_oracle(d, center), None, 200, 100, _gen(16), dtype=F64, device=device)
         assert x.shape == (1, 200, g.matrix_dim, g.matrix_dim)
         g.check(x)
         err = g.rminus(center.expand_as(x), x)
@@ -255,10 +271,10 @@ def _sampler_point_mass(make: Callable[[Diffusion], Sampler], device: torch.devi
 def _sampler_symmetric_mixture(make: Callable[[Diffusion], Sampler], device: torch.device) -> None:
     """12 tetrahedral-symmetric point masses: every sample on a mode, every mode populated."""
     g = SO3()
-    d = Diffusion(ConcentratedGaussian(g), LinearSchedule(), prior="haar")
+    d = _diffusion(make, g, "haar")
     r0 = g.sample_uniform((1,), generator=_gen(17), dtype=F64)
     modes = (r0 @ _tet_modes()).to(device)
-    x = make(d).sample(MixtureOracle(d, modes), None, 600, 50, _gen(18), dtype=F64, device=device)[0]
+    x = make(d).sample(_oracle(d, modes), None, 600, 50, _gen(18), dtype=F64, device=device)[0]
     rel = modes.transpose(-1, -2).unsqueeze(0) @ x.unsqueeze(1)  # (N, 12, 3, 3)
     ang = g.log(rel).norm(dim=-1)
     best, idx = ang.min(dim=1)
@@ -271,9 +287,9 @@ def _sampler_symmetric_mixture(make: Callable[[Diffusion], Sampler], device: tor
 
 def _sampler_trajectory_and_determinism(make: Callable[[Diffusion], Sampler], device: torch.device) -> None:
     g = get_group("se3")
-    d = Diffusion(ConcentratedGaussian(g), LinearSchedule(), prior="kernel")
+    d = _diffusion(make, g, "kernel")
     center = g.identity((1, 1), dtype=F64, device=device)
-    oracle = MixtureOracle(d, center[0])
+    oracle = _oracle(d, center[0])
     sampler = make(d)
     a, path = sampler.sample(oracle, None, 8, 5, _gen(19), trajectory=True, dtype=F64, device=device)
     assert path.shape == (6, 1, 8, 4, 4), f"trajectory shape {tuple(path.shape)}"
@@ -304,39 +320,41 @@ def _mode_shares(g: LieGroup, modes: torch.Tensor, x: torch.Tensor) -> tuple[flo
     return float(best.max()), torch.bincount(idx, minlength=modes.shape[0]).to(F64) / x.shape[0]
 
 
-@functools.lru_cache(maxsize=4)
-def _reference_shares(device: str) -> torch.Tensor:
-    """The shares the exact probability-flow ODE (Heun, 100 steps = 199 NFE) gives from the Haar
-    prior — not exactly the weights: at σ_max = 1 the noisy law is not yet Haar-uniform, which pulls
-    every sampler's shares toward uniform alike (the random walk at 100 steps: 0.35/0.29/0.23/0.13)."""
+@functools.lru_cache(maxsize=8)
+def _reference_shares(device: str, objective: str = "dsm") -> torch.Tensor:
+    """The shares the exact ODE of the objective gives from the Haar prior with 100 Heun steps (199
+    NFE): the score's probability-flow ODE — not exactly the weights: at σ_max = 1 the noisy law is not
+    yet Haar-uniform, which pulls every sampler's shares toward uniform alike (the random walk at 100
+    steps: 0.35/0.29/0.23/0.13) — or the flow's own ODE, which starts from the Haar prior exactly
+    (0.42/0.29/0.19/0.10)."""
+    from ..diffusion.flow import FlowHeunSampler
     from ..diffusion.ode import HeunSampler
 
     g = SO3()
-    d = Diffusion(ConcentratedGaussian(g), LinearSchedule(), prior="haar")
+    d = Diffusion(ConcentratedGaussian(g), LinearSchedule(), prior="haar", objective=objective)
     modes, w = _weighted_modes()
     modes = modes.to(device)
-    x = HeunSampler(d).sample(
-        MixtureOracle(d, modes, w.to(device)), None, 4000, 100, _gen(21), dtype=F64, device=device
-    )
+    heun = FlowHeunSampler if objective == "flow" else HeunSampler
+    x = heun(d).sample(_oracle(d, modes, w.to(device)), None, 4000, 100, _gen(21), dtype=F64, device=device)
     return _mode_shares(g, modes, x[0])[1].cpu()
 
 
 def _sampler_five_nfe(make: Callable[[Diffusion], Sampler], device: torch.device) -> None:
-    """Samplers that claim few steps (``few_nfe``): with the exact score and 5 network evaluations
+    """Samplers that claim few steps (``few_nfe``): with the exact score (or velocity) and 5 network evaluations
     every sample lands on a mode (a point mass on SO3 and SE3; a weighted 4-mode mixture) and the
     modes keep their weights (shares in the weights' order, each within 0.07 of the exact flow's —
     uniform shares would be 0.095 off)."""
-    probe = make(Diffusion(ConcentratedGaussian(SO3()), LinearSchedule(), prior="haar"))
+    probe = make(_diffusion(make, SO3(), "haar"))
     if not type(probe).few_nfe:
         return  # a many-step sampler (the random walk): not held to 5 evaluations
     for gname in ("so3", "se3"):
         g = get_group(gname)
-        d = Diffusion(ConcentratedGaussian(g), LinearSchedule(), prior="haar")
+        d = _diffusion(make, g, "haar")
         sampler = make(d)
         steps = sampler.steps_for_nfe(5)
         assert sampler.network_calls(steps) <= 5
         center = g.sample_uniform((1,), generator=_gen(22), dtype=F64, bound=0.5).to(device)
-        x = sampler.sample(MixtureOracle(d, center), None, 200, steps, _gen(23), dtype=F64, device=device)
+        x = sampler.sample(_oracle(d, center), None, 200, steps, _gen(23), dtype=F64, device=device)
         err = g.rminus(center.expand_as(x), x)
         ang = float(err[..., g.rotation_slice].norm(dim=-1).max())
         assert ang < math.radians(0.5), f"{gname}: 5 NFE, worst sample {math.degrees(ang):.3f}° off the point"
@@ -344,18 +362,18 @@ def _sampler_five_nfe(make: Callable[[Diffusion], Sampler], device: torch.device
             terr = float((x[..., :3, 3] - center[..., :3, 3]).norm(dim=-1).max())
             assert terr < 1e-3, f"{gname}: 5 NFE, translation off by {terr:.2e}"
     g = SO3()
-    d = Diffusion(ConcentratedGaussian(g), LinearSchedule(), prior="haar")
+    d = _diffusion(make, g, "haar")
     sampler = make(d)
     modes, w = _weighted_modes()
     modes = modes.to(device)
-    oracle = MixtureOracle(d, modes, w.to(device))
+    oracle = _oracle(d, modes, w.to(device))
     x = sampler.sample(oracle, None, 2000, sampler.steps_for_nfe(5), _gen(24), dtype=F64, device=device)[0]
     worst, shares = _mode_shares(g, modes, x)
     shares = shares.cpu()
     assert worst < math.radians(0.5), (
         f"weighted mixture, 5 NFE: worst sample {math.degrees(worst):.3f}° off a mode"
     )
-    ref = _reference_shares(str(device))
+    ref = _reference_shares(str(device), _objective(make))
     assert bool((shares[:-1] > shares[1:]).all()), f"5 NFE shares {shares.tolist()} not in the weights' order"
     gap = float((shares - ref).abs().max())
     assert gap < 0.07, (

@@ -1,4 +1,7 @@
-"""Few-step students of a trained score model: segment distillation of the probability-flow ODE on the group.
+"""Few-step students of a trained model: segment distillation of a score model's probability-flow ODE, and
+rectification (reflow) of a flow model, on the group.
+
+**Segment distillation** (``method=segment``, score models):
 
 A student takes ``steps`` large steps of posediff's ``few_step`` sampler (order 1, no re-noising) on
 the schedule's levels ``σ_0 > σ_1 > … > σ_{steps−1}`` (``schedule.timesteps(steps)``) and then 0::
@@ -26,6 +29,15 @@ teacher's, frozen: the flow map is a function of the same image feature, and the
 once per batch for both). The result is a normal posediff checkpoint (the teacher's run config with
 ``module.sampler`` set to ``few_step`` at ``num_steps=steps`` and a ``distill`` record) that
 ``posediff eval`` / ``predict`` / ``export`` use unchanged.
+
+**Rectification** (``method=reflow``, flow models trained with ``diffusion.objective=flow``; Liu et al.
+2023, "Flow straight and fast", on the group): the teacher's ODE (``flow_heun``, ``teacher_steps``
+steps) couples each prior draw ``X₀`` with the pose it carries it to, ``X₁ = Φ_T(X₀)``; the student (a
+copy of the teacher, its denoiser trained) is re-fitted by the same flow objective on those pairs
+(:meth:`~posediff.diffusion.Diffusion.interpolate` with the given ``x0``): ``X_t = X₀·Exp(t·u)``,
+``u = Log(X₀⁻¹X₁)``, loss ``‖u_S(X_t, t) − u‖²``. The coupling no longer crosses itself, so the refitted
+flow is straighter and its Euler steps land closer with fewer of them; it samples with ``flow_euler``
+at ``steps`` steps. ``rounds=2`` rectifies the rectified flow once more (its own pairs).
 """
 
 from __future__ import annotations
@@ -41,7 +53,17 @@ from torch import Tensor
 from ..diffusion import Diffusion
 from ..models import PoseDiffusionModule
 
-#: the sampler of every student (its steps are set from ``steps``)
+#: the sampler of every reflow student (its steps are set from ``steps``)
+REFLOW_SAMPLER: dict[str, Any] = {
+    "_target_": "posediff.diffusion.FlowEulerSampler",
+    "_partial_": True,
+    "spacing": "uniform",
+    "rotation_rate": 0.0,
+}
+#: ``posediff distill method=``: what each straightens
+METHODS = {"segment": "dsm", "reflow": "flow"}
+
+#: the sampler of every segment student (its steps are set from ``steps``)
 STUDENT_SAMPLER: dict[str, Any] = {
     "_target_": "posediff.diffusion.FewStepSampler",
     "_partial_": True,
@@ -216,6 +238,75 @@ class SegmentDistillation(L.LightningModule):
         return config
 
 
+class Reflow(SegmentDistillation):
+    """Rectifies a flow model (module docstring): the student re-fitted by flow matching on the pairs
+    ``(X₀, Φ_T(X₀))`` of the teacher's ODE.
+
+    Args:
+        teacher: the trained flow model (frozen).
+        steps: the student's ``flow_euler`` steps.
+        teacher_steps: ``flow_heun`` steps of the teacher's ODE (``2·teacher_steps − 1`` evaluations).
+        num_hypotheses, reuse, lr, lr_final: as :class:`SegmentDistillation`.
+    """
+
+    def __init__(
+        self,
+        teacher: PoseDiffusionModule,
+        *,
+        steps: int,
+        teacher_steps: int = 20,
+        num_hypotheses: int = 16,
+        reuse: int = 4,
+        lr: float = 1e-4,
+        lr_final: float = 1e-5,
+    ) -> None:
+        if teacher.diffusion.objective != "flow":
+            raise DistillationError(
+                "method=reflow straightens a flow model (diffusion.objective=flow); this teacher is a score "
+                "model: use method=segment"
+            )
+        super().__init__(
+            teacher, steps=1, num_hypotheses=num_hypotheses, reuse=reuse, lr=lr, lr_final=lr_final
+        )
+        from ..diffusion import FlowHeunSampler
+
+        self.steps = int(steps)
+        self.teacher_steps = int(teacher_steps)
+        self.teacher_sampler = FlowHeunSampler(teacher.diffusion)
+        self.sig_t, self.sig_p = [float(v) for v in self.teacher_sampler.sigma_grid(self.steps)[0]], []
+
+    @torch.no_grad()
+    def teacher_pool(
+        self, cond: Any, generator: torch.Generator | None = None
+    ) -> tuple[Tensor, list[Tensor]]:
+        """``(feature, [X₀, X₁])``: prior draws and where the teacher's ODE carries them."""
+        teacher, d = self.teacher, self.teacher.diffusion
+        feature = teacher.encode(cond)
+        x0 = d.prior(
+            (int(feature.shape[0]), self.num_hypotheses), generator=generator, dtype=feature.dtype,
+            device=feature.device,
+        )  # fmt: skip
+        fn = teacher.denoise_fn()
+        x = x0
+        t0, t1 = self.teacher_sampler.sigma_grid(self.teacher_steps)
+        for a, b in zip(t0.tolist(), t1.tolist(), strict=True):
+            x = self.teacher_sampler.step(fn, x, a, b, feature, None)
+        return feature, [x0, x]
+
+    def student_loss(self, feature: Tensor, states: list[Tensor]) -> Tensor:
+        """The flow objective on the teacher's pairs: ``mean ‖u_S(X_t, t) − Log(X₀⁻¹X₁)‖²``."""
+        x0, x1 = states
+        batch = self.student.diffusion.interpolate(x1, x0=x0)
+        out = self.student(batch.x_noisy, batch.sigma, feature)
+        return self.student.diffusion.loss(out, batch)
+
+    def student_config(self, teacher_config: dict[str, Any], record: dict[str, Any]) -> dict[str, Any]:
+        config = copy.deepcopy(teacher_config)
+        config["module"]["sampler"] = {**REFLOW_SAMPLER, "num_steps": self.steps}
+        config["distill"] = record
+        return config
+
+
 def save_student(student: PoseDiffusionModule, config: dict[str, Any], path: Any) -> Any:
     """Write ``student`` as a posediff checkpoint (``state_dict`` + run config) atomically, as ``posediff
     fit`` writes its checkpoints (:func:`posediff.training.checkpoint_io.save_torch`: a temporary name in the same
@@ -235,6 +326,9 @@ def save_student(student: PoseDiffusionModule, config: dict[str, Any], path: Any
 
 
 __all__ = [
+    "METHODS",
+    "REFLOW_SAMPLER",
+    "Reflow",
     "DistillationError",
     "SegmentDistillation",
     "STUDENT_SAMPLER",
