@@ -242,6 +242,13 @@ def test_flow_image_model_fits_reflows_evaluates_and_exports(
     assert main(["eval", f"ckpt_path={out}", "num_samples=2", f"hydra.run.dir={tmp_path / 'eval'}"]) == 0
     assert json.loads((tmp_path / "eval" / "metrics.json").read_text())["sampler"] == "flow_euler"
     assert main(["export", f"ckpt_path={out}", "format=torchscript", f"out={tmp_path / 'ts'}"]) == 0
+    from posediff import predict
+
+    image = torch.rand(3, 32, 32, generator=torch.Generator().manual_seed(0))
+    for model in (teacher, student):  # predict and modes() of a flow model, as of a score model
+        pred = predict(model, image, num_samples=6, seed=1)
+        assert pred.samples.shape == (6, 4, 4) and bool(torch.isfinite(pred.samples).all())
+        assert pred.modes.poses.shape[0] >= 1 and abs(float(pred.modes.weights.sum()) - 1) < 1e-5
     capsys.readouterr()
     reg = runs["regression"] / "checkpoints" / "last.ckpt"
     assert main(["distill", f"ckpt_path={reg}", "method=reflow", f"hydra.run.dir={tmp_path / 'reg'}"]) == 2

@@ -93,7 +93,7 @@ def setup(cfg: DictConfig, out_dir: Path) -> tuple[PoseDiffusionModule, DictConf
     if not isinstance(teacher, PoseDiffusionModule) or not hasattr(teacher.sampler, "step"):
         raise DistillationError(
             f"checkpoint {cfg.ckpt_path} is a {type(teacher).__name__}, not a diffusion model: "
-            "posediff distill needs a score model trained by posediff fit"
+            "posediff distill needs a score or flow model trained by posediff fit"
         )
     if cfg.method not in METHODS:
         raise DistillationError(f"unknown method {cfg.method!r}; options: {', '.join(METHODS)}")
