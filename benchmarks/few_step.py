@@ -13,7 +13,8 @@ per input. Rows are appended to the JSON as they finish (``--out``; the Markdown
 Models named ``X`` and ``X_flow`` (or ``X_dsm``) are one family trained at the same budget (score
 matching and flow matching, issue 30); the targets compare each with the family's best 100-NFE spread.
 A flow model runs ``flow_euler`` (uniform times), ``flow_euler_cosine`` (cosine times),
-``flow_euler_rot10`` (FrameFlow's rotation schedule, rate 10) and ``flow_heun``; its student
+``flow_euler_rot10`` (FrameFlow's rotation schedule, rate 10), ``flow_heun`` and
+``flow_euler_renoise`` (predict the clean pose, re-draw the prior pose: ``few_step_renoise``'s analogue); its student
 (``posediff distill method=reflow``) runs ``flow_euler`` at every budget.
 
 Samplers of a score model: ``few_step`` (Euler step of the probability-flow ODE, posediff's deterministic few-step
@@ -57,6 +58,7 @@ def samplers(diffusion: Any) -> dict[str, Any]:
                 diffusion, rotation_rate=10.0
             ),  # FrameFlow's rotation schedule
             "flow_heun": FlowHeunSampler(diffusion),
+            "flow_euler_renoise": FlowEulerSampler(diffusion, fresh_prior=True),  # predict clean, fresh prior
         }
     return {
         "few_step": FewStepSampler(diffusion),

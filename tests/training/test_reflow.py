@@ -70,6 +70,18 @@ def test_exported_loop_is_the_samplers(teacher: Path) -> None:
         assert_close(out, ref)
 
 
+def test_export_refuses_a_renoising_flow_sampler(teacher: Path, tmp_path: Path) -> None:
+    """``fresh_prior=true`` draws a prior pose per step, not a tangent noise the exported loop takes: one
+    ExportError naming the fix, and nothing written."""
+    from posediff.models.export import ExportError, export_module
+
+    module = load_checkpoint(teacher / "checkpoints" / "last.ckpt").eval()
+    module.sampler = FlowEulerSampler(module.diffusion, fresh_prior=True)
+    with pytest.raises(ExportError, match="sampler.fresh_prior=false"):
+        export_module(module, tmp_path / "ts", "torchscript", example=torch.randn(1, 17))
+    assert not (tmp_path / "ts").exists()
+
+
 def test_pairs_are_the_teachers_ode_and_the_loss_its_flow_objective(teacher: Path) -> None:
     """teacher_pool's X₁ is where flow_heun carries X₀; a student whose velocity is exactly
     Log(X₀⁻¹X₁) along each pair's geodesic would have loss 0, and Adam on a fixed pool lowers the loss."""

@@ -114,10 +114,37 @@ class FlowSampler(Sampler):
 
 
 class FlowEulerSampler(FlowSampler, name="flow_euler"):
-    """Euler on the group: ``X ← X · Exp(h · u(X, t))`` (module docstring)."""
+    """Euler on the group: ``X ← X · Exp(h · u(X, t))`` (module docstring).
+
+    ``fresh_prior=True`` is the flow's analogue of ``few_step_renoise``: each step predicts the clean pose
+    ``X̂₁ = X · Exp((1 − t) u)`` and re-draws the noise, ``X ← X₀' · Exp(t' · Log(X₀'⁻¹ X̂₁))`` with a
+    fresh prior pose ``X₀'`` (the interpolant's own law at t' around X̂₁, as in multistep consistency
+    sampling); the step onto t = 1 is ``X̂₁``. One network evaluation per step, as Euler; not a
+    discretisation of the ODE (``rotation_rate`` does not apply to it).
+    """
+
+    def __init__(
+        self,
+        diffusion: Diffusion,
+        *,
+        num_steps: int | None = None,
+        spacing: Literal["uniform", "cosine"] = "uniform",
+        rotation_rate: float = 0.0,
+        fresh_prior: bool = False,
+    ) -> None:
+        super().__init__(diffusion, num_steps=num_steps, spacing=spacing, rotation_rate=rotation_rate)
+        self.fresh_prior = bool(fresh_prior)
 
     def step(self, denoise_fn, x, sigma_t, sigma_p, cond, generator):  # noqa: ANN001, ANN201
-        return self.advance(x, self.velocity(denoise_fn, x, sigma_t, cond), sigma_t, sigma_p)
+        u = self.velocity(denoise_fn, x, sigma_t, cond)
+        if not self.fresh_prior:
+            return self.advance(x, u, sigma_t, sigma_p)
+        g = self.group
+        x1 = g.rplus(x, (1.0 - sigma_t) * u)  # the clean pose the velocity points at
+        if sigma_p >= 1.0:
+            return x1
+        x0 = self.diffusion.prior(tuple(x.shape[:-2]), generator=generator, dtype=x.dtype, device=x.device)
+        return g.rplus(x0, sigma_p * g.rminus(x0, x1))
 
 
 class FlowHeunSampler(FlowSampler, name="flow_heun"):

@@ -293,6 +293,11 @@ def export_module(
         raise ExportError(
             f"{type(module).__name__} is not a diffusion model with a sampler; nothing to export"
         )
+    if getattr(sampler, "fresh_prior", False) is True and getattr(sampler, "objective", "dsm") == "flow":
+        raise ExportError(
+            f"{sampler.name} fresh_prior=true draws a prior pose every step, which the exported loop cannot "
+            "take as an input: export with sampler.fresh_prior=false"
+        )
     steps, _ = unrolled_steps(sampler, fmt, num_steps, max_unrolled)
     out = Path(out)
     try:
