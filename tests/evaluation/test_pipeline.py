@@ -134,7 +134,7 @@ def test_eval_refusals(trained: Path, tmp_path: Path, capsys: pytest.CaptureFixt
         ),
         (
             ["sampler=nope"],
-            "unknown sampler 'nope'; available: ancestral, crouch_grossman, few_step, heun, random_walk, rkmk",
+            "unknown sampler 'nope'; available: ancestral, crouch_grossman, few_step, flow_euler, flow_heun, heun, random_walk, rkmk",
         ),
         ([f"ckpt_path={tmp_path / 'none.ckpt'}"], "not found"),
     ]

@@ -123,3 +123,14 @@ def test_reflow_of_a_score_model_and_an_unknown_method_get_one_line(
         err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
         assert len(err) == 1 and err[0].startswith("posediff distill") and message in err[0], err
         assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+def test_segment_distillation_of_a_flow_model_gets_one_line(
+    teacher: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    ckpt = teacher / "checkpoints" / "last.ckpt"
+    capsys.readouterr()
+    assert main(["distill", f"ckpt_path={ckpt}", "method=segment", f"hydra.run.dir={tmp_path / 'run'}"]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and "cannot distill a flow model" in err[0] and "use method=reflow" in err[0], err
+    assert not (tmp_path / "run" / "checkpoints").exists()
