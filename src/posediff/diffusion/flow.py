@@ -39,6 +39,7 @@ import torch
 from torch import Tensor
 
 from .likelihood import prior_log_prob
+from .oracle import mixture_log_weights
 from .process import Diffusion
 from .samplers import DenoiseFn, Sampler
 
@@ -183,10 +184,7 @@ class FlowOracle:
             raise ValueError("FlowOracle needs Diffusion(objective='flow'); MixtureOracle is the score's")
         self.diffusion = diffusion
         self.centers = centers
-        k = centers.shape[-3]
-        if weights is None:
-            weights = torch.full(centers.shape[:-2], 1.0 / k, dtype=centers.dtype, device=centers.device)
-        self.log_weights = torch.log(weights)
+        self.log_weights = mixture_log_weights(centers, weights)
         self.t_max = float(t_max)
 
     def time(self, sigma: Tensor) -> Tensor:

@@ -17,6 +17,14 @@ from torch import Tensor
 from .process import Diffusion
 
 
+def mixture_log_weights(centers: Tensor, weights: Tensor | None) -> Tensor:
+    """``log`` of a point-mass mixture's weights, ``centers.shape[:-2]``; ``None``: uniform over its ``K``."""
+    if weights is None:
+        k = centers.shape[-3]
+        weights = torch.full(centers.shape[:-2], 1.0 / k, dtype=centers.dtype, device=centers.device)
+    return torch.log(weights)
+
+
 class MixtureOracle:
     """``denoise_fn`` for a mixture of point masses (``centers (K, n, n)`` or per input ``(B, K, n, n)``).
 
@@ -29,10 +37,7 @@ class MixtureOracle:
     def __init__(self, diffusion: Diffusion, centers: Tensor, weights: Tensor | None = None) -> None:
         self.diffusion = diffusion
         self.centers = centers
-        k = centers.shape[-3]
-        if weights is None:
-            weights = torch.full(centers.shape[:-2], 1.0 / k, dtype=centers.dtype, device=centers.device)
-        self.log_weights = torch.log(weights)
+        self.log_weights = mixture_log_weights(centers, weights)
 
     def __call__(self, x: Tensor, sigma: Tensor, cond: Any = None) -> Tensor:
         d = self.diffusion
