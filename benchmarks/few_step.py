@@ -8,7 +8,9 @@ evaluations fit: ``Sampler.steps_for_nfe``; the row states the NFE actually spen
 own test data; each student runs with its own sampler (few_step at the steps it was distilled for).
 Per row: mean spread over the shapes (°), spread per shape, mode coverage of the discrete shapes
 (share of the symmetry-equivalent poses with a hypothesis within 5°), translation error, seconds
-per input. Rows are appended to the JSON as they finish (``--out``; the Markdown table next to it).
+per input. Rows are appended to the JSON as they finish (``--out``; the Markdown table next to it);
+a run into an existing ``--out`` keeps the rows of the models it does not name (``commands`` lists
+every run that wrote there).
 
 Models named ``X`` and ``X_flow`` (or ``X_dsm``) are one family trained at the same budget (score
 matching and flow matching, issue 30); the targets compare each with the family's best 100-NFE spread.
@@ -169,10 +171,12 @@ def markdown(rows: list[dict[str, Any]], students: dict[str, dict]) -> str:
 
 
 def family(model: str) -> str:
-    """``toy_so3_flow`` and ``toy_so3_dsm`` (and ``toy_so3``) are one family: the same data and budget."""
-    for suffix in ("_flow", "_dsm"):
-        if model.endswith(suffix):
-            return model[: -len(suffix)]
+    """``toy_so3_flow`` and ``toy_so3_dsm`` (and ``toy_so3``) are one family: the same data and budget;
+    so are variants named on, ``image_flow_r2`` (a second student of the same flow teacher)."""
+    for tag in ("_flow", "_dsm"):
+        head, sep, _ = model.partition(tag)
+        if sep:
+            return head
     return model
 
 
@@ -275,8 +279,11 @@ def main() -> int:
     previous = json.loads(args.out.read_text()) if args.out.is_file() else {}
     rows = [r for r in previous.get("rows", []) if r["model"] not in teachers]
     students = {k: v for k, v in previous.get("students", {}).items() if k not in teachers}
+    command = " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])
+    earlier = previous.get("commands", [previous["command"]] if "command" in previous else [])
     result = {
-        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        "command": command,
+        "commands": [*earlier, command],  # every run whose rows this file holds, in order
         "date": dt.datetime.now().isoformat(timespec="seconds"),
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
                     "threads": torch.get_num_threads()},
