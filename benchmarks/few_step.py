@@ -283,7 +283,7 @@ def main() -> int:
     earlier = previous.get("commands", [previous["command"]] if "command" in previous else [])
     result = {
         "command": command,
-        "commands": [*earlier, command],  # every run whose rows this file holds, in order
+        "commands": [*earlier, command],  # every run that wrote into this file, in order
         "date": dt.datetime.now().isoformat(timespec="seconds"),
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
                     "threads": torch.get_num_threads()},

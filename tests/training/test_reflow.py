@@ -118,19 +118,23 @@ def test_reflow_of_a_score_model_and_an_unknown_method_get_one_line(
     ckpt = tmp_path / "dsm" / "checkpoints" / "last.ckpt"
     for args, message in ((["method=reflow"], "use method=segment"),
                           (["method=magic"], "unknown method 'magic'; options: segment, reflow")):  # fmt: skip
-        capsys.readouterr()
-        assert main(["distill", f"ckpt_path={ckpt}", *args, f"hydra.run.dir={tmp_path / 'run'}"]) == 2
-        err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
-        assert len(err) == 1 and err[0].startswith("posediff distill") and message in err[0], err
-        assert not (tmp_path / "run" / "checkpoints").exists()
+        _refused_in_one_line(ckpt, args, message, tmp_path, capsys)
+
+
+def _refused_in_one_line(
+    ckpt: Path, args: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``posediff distill`` refuses: exit 2, one stderr line with ``message``, no checkpoint written."""
+    capsys.readouterr()
+    assert main(["distill", f"ckpt_path={ckpt}", *args, f"hydra.run.dir={tmp_path / 'run'}"]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith("posediff distill") and message in err[0], err
+    assert not (tmp_path / "run" / "checkpoints").exists()
 
 
 def test_segment_distillation_of_a_flow_model_gets_one_line(
     teacher: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     ckpt = teacher / "checkpoints" / "last.ckpt"
-    capsys.readouterr()
-    assert main(["distill", f"ckpt_path={ckpt}", "method=segment", f"hydra.run.dir={tmp_path / 'run'}"]) == 2
-    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
-    assert len(err) == 1 and "cannot distill a flow model" in err[0] and "use method=reflow" in err[0], err
-    assert not (tmp_path / "run" / "checkpoints").exists()
+    message = "method=segment cannot distill a flow model (diffusion.objective=flow); use method=reflow"
+    _refused_in_one_line(ckpt, ["method=segment"], message, tmp_path, capsys)
