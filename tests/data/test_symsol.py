@@ -18,6 +18,7 @@ from posediff.data.symsol import (
     SymsolDataModule,
     SymsolRenderer,
     SymsolShards,
+    authors_frame,
     equivalent_poses,
     make_mesh,
     render_dataset,
@@ -25,7 +26,7 @@ from posediff.data.symsol import (
     symmetries,
 )
 from posediff.data.symsol.render import intrinsics
-from posediff.symmetry import SHAPES
+from posediff.symmetry import GOLDEN_RATIO, SHAPES
 
 SIZE = 64
 
@@ -87,7 +88,8 @@ def test_meshes_are_sized_and_centred_like_the_authors(shape: str) -> None:
     assert m.is_watertight
     np.testing.assert_allclose(m.center_mass, 0.0, atol=1e-9)
     radius = np.linalg.norm(m.vertices, axis=1).max()
-    expected = {"tet": 3.5 / 1.3, "icosa": 3.5 / 2.5, "cube": 3.5 * np.sqrt(3) / 2}
+    # Open3D's create_icosahedron(radius=1.4) scales the unnormalised vertices (0, ±1, ±φ): 2.663
+    expected = {"tet": 3.5 / 1.3, "icosa": 1.4 * np.sqrt(1 + GOLDEN_RATIO**2), "cube": 3.5 * np.sqrt(3) / 2}
     if shape in expected:
         assert radius == pytest.approx(expected[shape], rel=1e-9)
     else:
@@ -185,10 +187,20 @@ def test_intrinsics_match_the_authors() -> None:
 def test_renderer_pickles_without_its_context(renderer: SymsolRenderer) -> None:
     import pickle
 
-    renderer.render("tet", np.eye(3), np.array([0, 0, SCENE_DISTANCE]))
+    first = renderer.render("tet", np.eye(3), np.array([0, 0, SCENE_DISTANCE]))
     clone = pickle.loads(pickle.dumps(renderer))
-    assert clone._gl is None
-    assert clone.render("tet", np.eye(3), np.array([0, 0, SCENE_DISTANCE])).mask.any()
+    again = clone.render("tet", np.eye(3), np.array([0, 0, SCENE_DISTANCE]))
+    assert again.mask.any()
+    np.testing.assert_array_equal(again.rgb, first.rgb)
+
+
+def _authors_translation(poses: object) -> np.ndarray:
+    """The scene translations of the authors' model origins (what the variants draw)."""
+    out = []
+    for sid, R, t in zip(poses.shape_id, poses.R, poses.t, strict=True):  # type: ignore[attr-defined]
+        C, o = authors_frame(int(sid))
+        out.append(t - R @ (C.T @ o) - [0, 0, SCENE_DISTANCE])
+    return np.asarray(out)
 
 
 # ----------------------------------------------------------------------------- poses
@@ -203,10 +215,13 @@ def test_pose_sampling_is_deterministic_and_splits_differ() -> None:
     np.testing.assert_allclose(
         np.einsum("nji,njk->nik", a.R, a.R), np.broadcast_to(np.eye(3), a.R.shape), atol=1e-12
     )
-    scene = a.t - [0, 0, SCENE_DISTANCE]
+    scene = _authors_translation(a)
     assert np.abs(scene).max() <= 1 and np.abs(scene).max() > 0.9
-    edge = sample_poses("symsolt", "edge", "train", 20, seed=0).t - [0, 0, SCENE_DISTANCE]
+    edge = _authors_translation(sample_poses("symsolt", "edge", "train", 20, seed=0))
     np.testing.assert_allclose(np.abs(edge), 1.0)
+    cone = a.shape_id == SHAPE_IDS["cone"]  # posediff's pose is the centre of mass, h/4 − h/362 up the axis
+    lever = np.linalg.norm(a.t[cone] - [0, 0, SCENE_DISTANCE] - scene[cone], axis=1)
+    np.testing.assert_allclose(lever, 3.5 / 4 - 3.5 / 362, rtol=1e-9)
     np.testing.assert_allclose(
         sample_poses("symsol", None, "train", 5, seed=0).t - [0, 0, SCENE_DISTANCE], 0.0
     )
@@ -334,7 +349,8 @@ def test_datamodule_streams_shards_and_renders_on_the_fly(tmp_path: Path) -> Non
     batch = next(iter(live.train_dataloader()))
     _check_batch(batch, 4, 32)
     torch.testing.assert_close(batch["mask"], batch["depth"] > 0)
-    torch.testing.assert_close(batch["translation"].abs(), torch.ones(4, 3))
+    cone = batch["shape"] == SHAPE_IDS["cone"]
+    torch.testing.assert_close(batch["translation"][~cone].abs(), torch.ones(int((~cone).sum()), 3))
 
 
 def test_gl_traps_are_handled_in_the_module(tmp_path: Path) -> None:

@@ -28,6 +28,7 @@ def render(cfg: DictConfig) -> int:
             shard_size=int(cfg.shard_size),
             workers=int(cfg.workers),
             progress=bool(cfg.progress),
+            look=str(cfg.look),
         )
     print(summary.line())
     return 0

@@ -27,13 +27,13 @@ with ``C``, ``o`` per shape (:func:`model_frame`): the cube and cylinder share p
 cone sits on its base (vertex mean h/362 above it; posediff's centre of mass is h/4 above it), so
 ``o = (0, 0, h/4 − h/362)``; their tetrahedron has a vertex on +z and their icosahedron the
 vertices ``(±1, 0, ±φ)`` and cyclic, so ``C`` is the rotation taking posediff's vertex directions
-onto theirs. Their icosahedron is also larger (circumradius 2.66 against posediff's 1.40): the
-images are theirs, so only posediff's own renders and overlays differ in size.
+onto theirs. The solids themselves are the same as posediff's renders since scene version 2
+(their icosahedron's circumradius 2.663; posediff's scene 1 had 1.40): one table,
+:func:`posediff.data.symsol.shapes.authors_frame`, serves both readers.
 """
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -44,10 +44,10 @@ import torch
 from torch.utils.data import Dataset
 
 from ...lie import LieGroup
-from ...symmetry import GOLDEN_RATIO, SHAPES
+from ...symmetry import SHAPES
 from ..symsol.datamodule import to_sample
 from ..symsol.render import SCENE_DISTANCE, intrinsics
-from ..symsol.shapes import SHAPE_SIZE
+from ..symsol.shapes import authors_frame
 from .base import OfficialDataError, OfficialDataModule, padded_symmetries
 from .symsol import _symmetries_of, read_png
 from .unpickle import UnsafePickleError, load_plain_pickle
@@ -96,63 +96,12 @@ def matrix_to_quaternion_wxyz(R: Any) -> np.ndarray:
     return out.reshape(*R.shape[:-2], 4)
 
 
-def _their_vertex_directions(shape: str) -> np.ndarray:
-    """Unit vertex directions of the authors' Open3D tetrahedron / icosahedron (Open3D's
-    ``CreateTetrahedron`` / ``CreateIcosahedron``)."""
-    if shape == "tet":
-        v = np.array([(math.sqrt(8 / 9), 0, -1 / 3), (-math.sqrt(2 / 9), math.sqrt(2 / 3), -1 / 3),
-                      (-math.sqrt(2 / 9), -math.sqrt(2 / 3), -1 / 3), (0, 0, 1)])  # fmt: skip
-    else:
-        p = GOLDEN_RATIO
-        base = [(a, 0.0, b * p) for a in (-1, 1) for b in (-1, 1)]
-        v = np.array([c[-k:] + c[:-k] if k else c for c in base for k in range(3)], dtype=np.float64)
-    return v / np.linalg.norm(v, axis=1, keepdims=True)
-
-
-def _posediff_vertex_directions(shape: str) -> np.ndarray:
-    if shape == "tet":
-        v = np.array([(1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)], dtype=np.float64)
-    else:
-        p = GOLDEN_RATIO
-        base = [(0.0, a, b * p) for a in (-1, 1) for b in (-1, 1)]
-        v = np.array([c[k:] + c[:k] for c in base for k in range(3)], dtype=np.float64)
-    return v / np.linalg.norm(v, axis=1, keepdims=True)
-
-
-def _frame(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """The right-handed orthonormal frame with first axis ``x`` and second in the ``x``, ``y`` plane."""
-    n = np.cross(x, y) / np.linalg.norm(np.cross(x, y))
-    return np.stack([x, np.cross(n, x), n], 1)
-
-
-def _rotation_onto(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """A rotation C with ``C·src`` = ``dst`` as sets of unit vectors (the first found: any two
-    differ by a symmetry of the solid)."""
-    a = src[0]
-    b = next(v for v in src[1:] if abs(v @ a) < 0.999)
-    for i in range(len(dst)):
-        for j in range(len(dst)):
-            if i == j or abs(dst[i] @ dst[j] - a @ b) > 1e-9:
-                continue
-            C = _frame(dst[i], dst[j]) @ _frame(a, b).T
-            if np.abs((src @ C.T) @ dst.T).max(1).min() > 1 - 1e-9:
-                return C
-    raise AssertionError("no rotation maps the vertex sets onto each other")  # pragma: no cover
-
-
-@functools.cache
 def model_frame(shape: str) -> tuple[np.ndarray, np.ndarray]:
-    """``(C (3, 3), o (3,))`` with ``p_theirs = C·p_posediff + o`` for a point of ``shape``'s model
-    (module docstring)."""
+    """``(C (3, 3), o (3,))`` with ``p_theirs = C·p_posediff + o`` for a point of ``shape``'s model:
+    :func:`posediff.data.symsol.shapes.authors_frame`, the one table posediff's own renders use too."""
     if shape not in SHAPES:
         raise OfficialDataError(f"unknown SYMSOL-T shape {shape!r}; available: {', '.join(SHAPES)}")
-    C, o = np.eye(3), np.zeros(3)
-    if shape in ("tet", "icosa"):
-        C = _rotation_onto(_posediff_vertex_directions(shape), _their_vertex_directions(shape))
-    elif shape == "cone":
-        h = SHAPE_SIZE
-        o = np.array([0.0, 0.0, h / 4.0 - h / 362.0])
-    return C, o
+    return authors_frame(shape)
 
 
 def to_posediff(shape: str, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

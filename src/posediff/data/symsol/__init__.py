@@ -3,14 +3,34 @@ sharded datasets (atomic, resumable) and the Lightning DataModule."""
 
 from .datamodule import SymsolDataModule, SymsolRenderDataset, SymsolShardDataset
 from .poses import DATASETS, VARIANTS, PoseSet, sample_poses
-from .render import FOV_DEG, SCENE_DISTANCE, Rendered, SymsolRenderer, intrinsics, prepare_gl
-from .shapes import SHAPE_IDS, SHAPE_SIZE, Symmetry, equivalent_poses, make_mesh, shape_name, symmetries
+from .render import (
+    FOV_DEG,
+    SCENE_DISTANCE,
+    SCENE_VERSION,
+    Look,
+    Rendered,
+    SymsolRenderer,
+    intrinsics,
+    prepare_gl,
+)
+from .shapes import (
+    SHAPE_IDS,
+    SHAPE_SIZE,
+    Symmetry,
+    authors_frame,
+    equivalent_poses,
+    make_mesh,
+    shape_name,
+    symmetries,
+)
 from .shards import RenderSummary, SymsolShards, render_dataset
 
 __all__ = [
     "DATASETS",
     "FOV_DEG",
     "SCENE_DISTANCE",
+    "SCENE_VERSION",
+    "Look",
     "SHAPE_IDS",
     "SHAPE_SIZE",
     "VARIANTS",
@@ -23,6 +43,7 @@ __all__ = [
     "SymsolRenderer",
     "SymsolShardDataset",
     "SymsolShards",
+    "authors_frame",
     "equivalent_poses",
     "intrinsics",
     "make_mesh",

@@ -6,6 +6,9 @@
   ``sign`` / ``zero``): ``uniform`` U[−1, 1]³, ``edge`` the 8 corners (±1, ±1, ±1) (the maximum
   distance from the centre), ``centered`` 0.
 
+The variants draw the translation of the authors' model origin (their cone's is its vertex mean,
+near the base: :func:`~posediff.data.symsol.shapes.authors_frame`), so posediff's SYMSOL-T has the
+distribution of theirs; the pose served is posediff's (the centre of mass), ``t = t_theirs + R·Cᵀo``.
 The camera-frame translation is the scene translation plus (0, 0, ``SCENE_DISTANCE``). Each
 (seed, split, shape) has its own random stream (``numpy.random.SeedSequence``), so train and test
 never share poses for one seed, and the samples of all shapes are interleaved in a seeded order
@@ -22,7 +25,7 @@ import numpy as np
 
 from ...symmetry import SHAPES
 from .render import SCENE_DISTANCE
-from .shapes import SHAPE_IDS, shape_name
+from .shapes import SHAPE_IDS, authors_frame, shape_name
 
 DATASETS: tuple[str, ...] = ("symsol", "symsolt")
 VARIANTS: tuple[str, ...] = ("uniform", "edge", "centered")
@@ -124,8 +127,13 @@ def sample_poses(
     for shape in shapes:
         sid = SHAPE_IDS[shape_name(shape)]
         rng = np.random.default_rng(np.random.SeedSequence([seed, _SPLIT_CODES[split], sid]))
-        Rs.append(haar_rotations(rng, n_per_shape))
-        ts.append(scene_translations(rng, n_per_shape, variant) + np.array([0.0, 0.0, SCENE_DISTANCE]))
+        R = haar_rotations(rng, n_per_shape)
+        t = scene_translations(rng, n_per_shape, variant)
+        if dataset == "symsolt":  # the authors' origin is what the variant places (module docstring)
+            C, o = authors_frame(sid)
+            t = t + R @ (C.T @ o)
+        Rs.append(R)
+        ts.append(t + np.array([0.0, 0.0, SCENE_DISTANCE]))
         ids.append(np.full(n_per_shape, sid, dtype=np.int64))
     order = np.random.default_rng(np.random.SeedSequence([seed, _SPLIT_CODES[split], 1000])).permutation(
         n_per_shape * len(ids)

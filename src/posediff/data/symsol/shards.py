@@ -2,7 +2,8 @@
 
 Layout of one split, ``<out>/<split>/``::
 
-    meta.json             what was asked for (dataset, variant, split, seed, sizes, K, renderer), the
+    meta.json             what was asked for (dataset, variant, split, seed, sizes, K, the renderer's
+                          scene version and look), the
                           digest of all its poses and ``complete`` (false until the last shard is written)
     index.npz             per sample: shape_id, R (3×3), t (3, camera frame), shard, offset
     shard-00000.npz …     ``shard_size`` samples each: rgb (n, H, W, 3) uint8, depth (n, H, W) uint16
@@ -10,12 +11,20 @@ Layout of one split, ``<out>/<split>/``::
                           provenance (one JSON string: the render the shard belongs to)
 
 Provenance: every shard records what it was rendered from — dataset, variant, split, seed, shapes,
-``n_per_shape``, image size and renderer settings, shard size, its number and index range, and the
+``n_per_shape``, image size, look and renderer settings (the scene version among them), shard size,
+its number and index range, and the
 SHA-256 of the poses it holds (:func:`~posediff.data.symsol.poses.pose_digest`). A resumed render
 checks every shard already in the folder against the render asked for (also when ``meta.json`` is
 gone) and refuses one that differs; :class:`SymsolShards` checks every shard against ``meta.json``
 and ``index.npz`` when it opens a split and again when it loads a shard. Folders of the earlier
-format (``posediff-symsol/1``, shards without provenance) cannot be checked and are refused by both.
+format (``posediff-symsol/1``, shards without provenance) cannot be checked and are refused by both;
+folders of posediff's first scene (``posediff-symsol/2``: a 1.9× smaller icosahedron, other lighting,
+:data:`~posediff.data.symsol.render.SCENE_VERSION`) are refused in one line naming the render command
+(their images are not the paper's, so a model trained on them is not either).
+
+``look``: ``paper`` renders every image in the authors' look; ``varied`` draws one per image
+(:meth:`~posediff.data.symsol.render.Look.sample`) from a generator seeded by (seed, split, image
+index), so the same seed gives the same images, whatever the shard size or the number of workers.
 
 Every file is written to a temporary name in the same folder and renamed, so an interrupted render
 leaves only whole shards; running the same command again renders only the missing ones. With
@@ -51,13 +60,26 @@ import numpy as np
 
 from ..._io import atomic_write_bytes, atomic_write_json
 from ...symmetry import SHAPES
-from .poses import check_spec, default_variant, pose_digest, sample_poses
-from .render import FOV_DEG, MIN_IMAGE_SIZE, SCENE_DISTANCE, SymsolRenderer, intrinsics
+from .poses import _SPLIT_CODES, check_spec, default_variant, pose_digest, sample_poses
+from .render import (
+    FOV_DEG,
+    LOOKS,
+    MIN_IMAGE_SIZE,
+    SCENE_DISTANCE,
+    SCENE_VERSION,
+    Look,
+    SymsolRenderer,
+    intrinsics,
+)
 from .shapes import shape_name
 
-FORMAT = "posediff-symsol/2"
+FORMAT = "posediff-symsol/3"
 #: The format before shards recorded their provenance (refused: such folders cannot be checked).
 LEGACY_FORMATS = ("posediff-symsol/1",)
+#: Formats of posediff's first scene (refused: their images are not the paper's).
+OLD_SCENE_FORMATS = ("posediff-symsol/2",)
+#: The stream of the per-image looks (``look=varied``), apart from the poses'.
+_LOOK_STREAM = 7
 DEPTH_SCALE = 1e-3  # one depth unit = 1e-3 scene units; uint16 covers 0 … 65.5
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)
 
@@ -208,6 +230,7 @@ _SPEC_KEYS = (
     "fov_deg",
     "shard_size",
     "depth_scale",
+    "look",
     "renderer",
     "poses_sha256",
 )
@@ -225,6 +248,7 @@ _META_TYPES: dict[str, Any] = {
     "fov_deg": (int, float),
     "shard_size": int,
     "depth_scale": (int, float),
+    "look": str,
     "renderer": dict,
     "poses_sha256": str,
     "K": list,
@@ -304,6 +328,11 @@ def read_meta(meta_path: Path, todo: str) -> dict[str, Any]:
             f"{meta_path} is from an older posediff (format {meta['format']}: its shards record no "
             f"provenance, so they cannot be checked against their poses); {todo}"
         )
+    if meta.get("format") in OLD_SCENE_FORMATS:
+        raise MetaFileError(
+            f"{meta_path} holds posediff's first scene (format {meta['format']}: an icosahedron 1.9× smaller "
+            f"than the paper's, other lighting; scene {SCENE_VERSION} is the paper's); {todo}"
+        )
     if meta.get("format") != FORMAT:
         raise MetaFileError(f"{meta_path} has format {meta.get('format')!r}, not {FORMAT!r}; {todo}")
     missing = [k for k in _META_TYPES if k not in meta]
@@ -337,15 +366,25 @@ class RenderSummary:
         )
 
 
-def _render_shard(args: tuple[Path, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, str]) -> int:
-    path, image_size, idx, shape_id, R, t, record = args
+def image_look(look: str, seed: int, split: str, index: int) -> Look:
+    """The look of image ``index`` of a split rendered with ``look`` (module docstring)."""
+    if look == "paper":
+        return Look.paper()
+    rng = np.random.default_rng(
+        np.random.SeedSequence([int(seed), _SPLIT_CODES[split], _LOOK_STREAM, int(index)])
+    )
+    return Look.sample(rng)
+
+
+def _render_shard(args: tuple[Any, ...]) -> int:
+    path, image_size, idx, shape_id, R, t, record, look, seed, split = args
     renderer = _worker_renderer(image_size)
     n = len(idx)
     rgb = np.empty((n, image_size, image_size, 3), np.uint8)
     depth = np.empty((n, image_size, image_size), np.uint16)
     with _sigint_between_images() as interrupted:
         for j in range(n):
-            out = renderer.render(int(shape_id[j]), R[j], t[j])
+            out = renderer.render(int(shape_id[j]), R[j], t[j], image_look(look, seed, split, int(idx[j])))
             rgb[j] = out.rgb
             depth[j] = np.round(out.depth / DEPTH_SCALE).astype(np.uint16)
             if interrupted():
@@ -466,11 +505,13 @@ def render_dataset(
     shard_size: int = 256,
     workers: int = 1,
     progress: bool = True,
+    look: str = "paper",
 ) -> RenderSummary:
     """Render one split into ``<out>/<split>/`` (module docstring); resumes an interrupted run.
 
     ``workers`` > 1 renders shards in that many processes (each with its own GL context); 0 or 1
-    renders in this process. Every option is checked before anything is written. A folder that
+    renders in this process. ``look``: ``paper`` or ``varied`` (module docstring). Every option is
+    checked before anything is written. A folder that
     holds a different dataset (other seed, size, …, in ``meta.json`` or in any shard) is refused
     with a one-line error.
     """
@@ -480,6 +521,8 @@ def render_dataset(
     shard_size = _check_count("shard_size", shard_size, 1)
     workers = _check_count("workers", workers, 0, " (0 or 1: render in this process)")
     seed = _check_count("seed", seed, 0)
+    if look not in LOOKS:
+        raise ValueError(f"unknown look {look!r}; available: {', '.join(LOOKS)}")
     poses = sample_poses(dataset, variant, split, n_per_shape, seed, shapes)  # checks the shapes
     root = Path(out) / split
     for folder in (Path(out), root):
@@ -500,7 +543,8 @@ def render_dataset(
         "shard_size": shard_size,
         "scene_distance": SCENE_DISTANCE,
         "depth_scale": DEPTH_SCALE,
-        "renderer": SymsolRenderer(image_size).settings(),  # no GL context: just the settings
+        "look": look,
+        "renderer": SymsolRenderer(image_size).settings(),
         "poses_sha256": poses.digest(),
         "K": intrinsics(image_size).tolist(),
         "num_samples": n,
@@ -547,6 +591,9 @@ def render_dataset(
                 poses.R[sl],
                 poses.t[sl],
                 record,
+                look,
+                seed,
+                split,
             )
         )
     rendered = sum(len(a[2]) for a in todo)
