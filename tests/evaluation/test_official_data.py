@@ -350,7 +350,12 @@ T_SMALL = ["+experiment=quickstart", "module.num_noisy=4", "data.batch_size=4", 
 
 @pytest.mark.parametrize("which", ["zip", "tfds", "symsolt"])
 def test_fit_eval_predict_on_the_official_files(
-    which: str, symsol_zip: Path, symsol_tfds: Path, symsolt_root: Path, tmp_path: Path
+    which: str,
+    symsol_zip: Path,
+    symsol_tfds: Path,
+    symsolt_root: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
 ) -> None:
     if which == "symsolt":
         args = [*T_SMALL, "data=symsolt_official", f"data.root={symsolt_root}", "data.image_size=128"]
@@ -367,10 +372,25 @@ def test_fit_eval_predict_on_the_official_files(
     assert set(rows) == set(expected)
     ckpt = run / "checkpoints" / "last.ckpt"
     ev = tmp_path / "eval"
+    # the data given whole (data=..., image_size its default 224 for SYMSOL-T): resized to the checkpoint's
+    data = ["data=symsolt_official", f"data.root={symsolt_root}"] if which == "symsolt" else []
+    capsys.readouterr()
     assert (
-        main(["eval", f"ckpt_path={ckpt}", "num_samples=2", "sampler.num_steps=3", f"hydra.run.dir={ev}"])
+        main(
+            [
+                "eval",
+                f"ckpt_path={ckpt}",
+                "num_samples=2",
+                "sampler.num_steps=3",
+                *data,
+                f"hydra.run.dir={ev}",
+            ]
+        )
         == 0
     )
+    if which == "symsolt":
+        line = "posediff eval: the checkpoint's encoder takes 128 px images; resizing the data's images to 128 px"
+        assert line + " (data.image_size was 224)" in capsys.readouterr().out
     assert set(json.loads((ev / "metrics.json").read_text())["shapes"]) == set(expected)
     pr = tmp_path / "predict"
     assert main(["predict", f"ckpt_path={ckpt}", "index=1", "num_samples=4", f"hydra.run.dir={pr}"]) == 0

@@ -46,7 +46,26 @@ def likelihood_options(eval_cfg: Any) -> dict[str, Any]:
     return {"log_likelihood": flag, "log_likelihood_steps": int(eval_cfg.get("log_likelihood_steps", 50))}
 
 
-def checkpoint_run(cfg: DictConfig) -> tuple[PoseModule, DictConfig]:
+def _images_at_checkpoint_size(run: DictConfig, stored: dict[str, Any], command: str) -> None:
+    """Data read from image files at another size than the checkpoint's encoder is resized to the
+    checkpoint's size (one line says so); rendered shards of another size stay refused by their reader."""
+    want = (stored.get("data") or {}).get("image_size")
+    have = run.data.get("image_size")
+    if want is None or have is None or int(have) == int(want) or "_target_" not in run.data:
+        return
+    try:
+        resizes = bool(getattr(get_class(str(run.data._target_)), "resizes_images", False))
+    except Exception:  # an unknown target fails later with its own one-line message
+        return
+    if resizes:
+        print(
+            f"{command}: the checkpoint's encoder takes {int(want)} px images; "
+            f"resizing the data's images to {int(want)} px (data.image_size was {int(have)})"
+        )
+        run.data.image_size = int(want)
+
+
+def checkpoint_run(cfg: DictConfig, command: str = "posediff eval") -> tuple[PoseModule, DictConfig]:
     """The module of ``cfg.ckpt_path`` and its run config with the command's ``group`` / ``data`` /
     ``sampler`` choices applied (a data mapping without ``_target_`` overrides single keys); the
     module's sampler is the resulting one."""
@@ -57,6 +76,7 @@ def checkpoint_run(cfg: DictConfig) -> tuple[PoseModule, DictConfig]:
     if data:
         d = OmegaConf.to_container(data, resolve=False)
         run.data = d if "_target_" in d else OmegaConf.merge(run.data, d)
+        _images_at_checkpoint_size(run, config, command)
     group = str(get_class(cfg.group._target_).name) if cfg.get("group") is not None else None
     shapes = list(run.data.shapes) if "shapes" in run.data else None
     check_compatible(config, group=group, shapes=shapes, where=f"checkpoint {cfg.ckpt_path}")

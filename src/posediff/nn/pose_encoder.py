@@ -54,7 +54,7 @@ ROTATION_HEADS = ("6d", "invariant")
 #: ("size") or the pose head only ("size_head")
 DEPTH_CUES = (None, "size", "size_head")
 #: how the depth cue measures the object's image area (PoseEncoder ``area_estimate``)
-AREA_ESTIMATES = ("threshold", "coverage")
+AREA_ESTIMATES = ("threshold", "coverage", "filled")
 #: what predicts the depth offset from the apparent size (PoseEncoder ``depth_head``)
 DEPTH_HEADS = ("linear", "embedding")
 
@@ -74,6 +74,34 @@ def coverage_area(grey: Tensor, background_level: float = 0.05) -> Tensor:
     edge = fg * near_background
     covered = torch.where(shade > 0, (g / shade.clamp_min(1e-6)).clamp(0.0, 1.0), torch.ones_like(g))
     return (inner + edge * covered).mean((-3, -2, -1))
+
+
+def filled_area(grey: Tensor, contrast: float = 0.05) -> Tensor:
+    """The object's image area as a fraction of the image, ``(B, H, W)`` grey in [0, 1] → ``(B,)``,
+    for a convex object, however dark its faces: the background level is the median of the image's
+    border; a pixel differing from it by more than ``contrast``, as do most of its 3 × 3 neighbours
+    (so that pixel noise is not), is object; the silhouette is then
+    filled along rows and along columns (a pixel between the first and last object pixel of its row,
+    or of its column, counts), so faces shaded as dark as the background inside the outline count, and
+    a grey background or a dimmer light leaves the area where it was (a face *at* the outline as dark
+    as the background is lost: nothing in the pixels tells it apart)."""
+    B, H, W = grey.shape
+    border = torch.cat([grey[:, 0], grey[:, -1], grey[:, 1:-1, 0], grey[:, 1:-1, -1]], dim=1)
+    background = border.median(dim=1).values
+    raw = ((grey - background[:, None, None]).abs() > contrast).to(grey.dtype)
+    # a majority of its 3 × 3 neighbourhood too: isolated noise drops out, the outline stays put
+    fg = (raw > 0) & (F.avg_pool2d(raw[:, None], 3, 1, 1, count_include_pad=False)[:, 0] > 0.4)
+    cols = torch.arange(W, device=grey.device)
+    rows = torch.arange(H, device=grey.device)
+
+    def span(mask: Tensor, idx: Tensor) -> Tensor:  # (B, L, N) → bool, between first and last True
+        big = mask.shape[-1]
+        first = torch.where(mask, idx, big).amin(-1, keepdim=True)
+        last = torch.where(mask, idx, -1).amax(-1, keepdim=True)
+        return (idx >= first) & (idx <= last)
+
+    filled = span(fg, cols) | span(fg.transpose(1, 2), rows).transpose(1, 2)
+    return filled.to(grey.dtype).mean((-2, -1))
 
 
 #: the invariant head's targets: the raw embedding, or centred and scaled to one spread per shape
@@ -223,7 +251,10 @@ class PoseEncoder(nn.Module):
             level (on antialiased renders 3.8 % ± 1.1 % above the silhouette's true area: a depth
             noise of ~0.5 %); ``"coverage"`` — pixels away from the background count whole, each edge
             pixel by its grey level over its brightest inner neighbour's, its covered fraction
-            (0.997 ± 0.004 of the true area on SYMSOL-T; :func:`coverage_area`).
+            (0.997 ± 0.004 of the true area on SYMSOL-T; :func:`coverage_area`); ``"filled"`` — the
+            silhouette against the image's own background level, filled along rows and columns
+            (:func:`filled_area`): dark faces, the light's strength and the background level leave it
+            unchanged.
         depth_head: the depth offset δ (with a ``depth_cue``): ``"linear"`` — the pose head's third
             translation output, linear in the crop's feature; ``"embedding"`` (with
             ``rotation_head="invariant"``) — plus a small MLP of the head's own (detached) invariant
@@ -471,6 +502,8 @@ class PoseEncoder(nn.Module):
         grey = image.float().mean(1)
         if self.area_estimate == "coverage":
             area = coverage_area(grey, self.background_level).clamp_min(1e-4)
+        elif self.area_estimate == "filled":
+            area = filled_area(grey, self.background_level).clamp_min(1e-4)
         else:
             area = (grey / self.background_level).clamp(0.0, 1.0).mean((-2, -1)).clamp_min(1e-4)
         log_area = area.log()

@@ -77,7 +77,7 @@ def prediction_input(cfg: DictConfig) -> tuple[Any, DictConfig, dict[str, Any], 
         raise ValueError(f"mode_radius_deg must be > 0, got {cfg.mode_radius_deg}")
     dev = device(str(cfg.device))
     picture = read_image(str(cfg.image)) if cfg.image is not None else None  # checked before the model
-    module, run_cfg = checkpoint_run(cfg)
+    module, run_cfg = checkpoint_run(cfg, "posediff predict")
     data_cls = target_class(OmegaConf.to_container(run_cfg.data), where="checkpoint data")  # allow-listed
     if getattr(data_cls, "needs_test_target", False) and cfg.index is None:
         raise ValueError(

@@ -48,6 +48,9 @@ class OfficialDataModule(LoaderPredictions, L.LightningDataModule):
 
     labels: ClassVar[tuple[str, ...]] = SHAPES
     dataset_name: ClassVar[str] = "SYMSOL"
+    #: the images are read from files and resized to ``image_size`` (so a checkpoint of another size
+    #: can be evaluated on them: ``posediff eval`` sets it to the checkpoint's)
+    resizes_images: ClassVar[bool] = True
 
     def __init__(
         self,
