@@ -59,8 +59,8 @@ learning-speed: ## what makes orientation learn soonest on a CPU: 11 variants ×
 	OMP_WAIT_POLICY=PASSIVE $(PY) benchmarks/learning_speed.py --parallel 2
 
 pretrain: ## posediff pretrain: the encoder by symmetry-aware regression on the 128 px renders (writes data/pretrained/symsolt_resnet18_crop64.pt)
-	$(VENV)/bin/posediff data render dataset=symsolt split=train image_size=128 out=data/symsolt_uniform_cpu128 progress=false
-	$(VENV)/bin/posediff data render dataset=symsolt split=test image_size=128 out=data/symsolt_uniform_cpu128 progress=false
+	$(VENV)/bin/posediff data render dataset=symsolt split=train image_size=128 out=data/symsolt_scene2_cpu128 progress=false
+	$(VENV)/bin/posediff data render dataset=symsolt split=test image_size=128 out=data/symsolt_scene2_cpu128 progress=false
 	$(VENV)/bin/posediff pretrain trainer.enable_progress_bar=false
 
 bench-render: ## SYMSOL-T rendering speed vs a training step (writes benchmarks/results/render.json)

@@ -43,7 +43,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 POSEDIFF = [sys.executable, "-m", "posediff.cli"]
 
 D64 = ["data.root=data/symsolt_uniform_cpu", "data.image_size=64"]
-D128 = ["data.root=data/symsolt_uniform_cpu128", "data.image_size=128"]
+D128 = ["data.root=data/symsolt_scene2_cpu128", "data.image_size=128"]
 WHOLE = ["encoder.crop_size=null"]
 SIXD = ["encoder.rotation_head=6d"]
 PAPER_INPUT = ["module.anchor=false", "module.aux_weight=0.0"]
@@ -363,7 +363,7 @@ def main() -> int:
     if unknown:
         print(f"unknown variants {unknown}; available: {', '.join(VARIANTS)}", file=sys.stderr)
         return 2
-    needed = {("data/symsolt_uniform_cpu128", "128")}  # quickstart's; a variant may read other shards
+    needed = {("data/symsolt_scene2_cpu128", "128")}  # quickstart's; a variant may read other shards
     for n in names:
         ov = dict(o.split("=", 1) for o in VARIANTS[n][1])
         if "data.root" in ov:

@@ -12,7 +12,7 @@
 A log-depth spread ``s`` is a depth error of about ``0.8 · s · z₀`` scene units (mean |error| of a
 Gaussian; ``z₀ = 9.09``), so it is what the encoder must remove by seeing the orientation.
 
-    python benchmarks/silhouette_cues.py --root data/symsolt_uniform_cpu128/test
+    python benchmarks/silhouette_cues.py --root data/symsolt_scene2_cpu128/test
 
 Prints a table and writes JSON (``--out``, default ``benchmarks/results/silhouette_cues.json``).
 No network is involved.
@@ -84,7 +84,7 @@ def measure(root: Path, fov_deg: float = 60.0) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--root", type=Path, default=ROOT / "data" / "symsolt_uniform_cpu128" / "test")
+    ap.add_argument("--root", type=Path, default=ROOT / "data" / "symsolt_scene2_cpu128" / "test")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "silhouette_cues.json")
     args = ap.parse_args()
     if not (args.root / "index.npz").is_file():

@@ -654,8 +654,8 @@ CASES = [
          lambda e: ["check", "group=so3"], "", code=141, lines=0, stdout="closed"),
     Case("stdout_full", "one line: cannot write to standard output (was a traceback)",
          lambda e: ["check", "group=so3"], "cannot write to standard output", stdout="full"),
-    Case("render_osmesa", "one line: how to render offscreen here (was a 65-line traceback)",
-         lambda e: [*RENDER, "split=test", f"out={e.dir / 'r'}"], "PYOPENGL_PLATFORM=osmesa",
+    Case("render_osmesa", "one line: how to render offscreen here (was a 65-line traceback; the BOP renderer is the one on GL)",
+         lambda e: ["data", "make-bop", f"out={e.dir / 'osmesa_bop'}"], "PYOPENGL_PLATFORM=osmesa",
          environ=lambda e: {"PYOPENGL_PLATFORM": "osmesa"}),
     # ---- Ctrl-C
     Case("fit_ctrl_c", "exit 130, one line: the step reached and how to resume",

@@ -18,7 +18,7 @@ from ..errors import fail
 
 COMMAND = "posediff demo"
 #: the cpu preset at 128 px (quickstart crops 64 px from it)
-DATA_ROOT = "data/symsolt_uniform_cpu128"
+DATA_ROOT = "data/symsolt_scene2_cpu128"
 
 
 def run(args: list[str]) -> int:
