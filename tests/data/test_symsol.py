@@ -354,13 +354,18 @@ def test_datamodule_streams_shards_and_renders_on_the_fly(tmp_path: Path) -> Non
 
 
 def test_gl_traps_are_handled_in_the_module(tmp_path: Path) -> None:
-    """In a fresh process: render in the parent, then fork DataLoader workers that render too (the
-    hang), then import triton / torch._dynamo after a GL context exists (the segfault)."""
+    """In a fresh process: make a GL context in the parent (the BOP renderer: SYMSOL renders without
+    GL since scene 2), then fork DataLoader workers that render (the hang), then import triton /
+    torch._dynamo after a GL context exists (the segfault)."""
     script = textwrap.dedent(
         """
-        import numpy as np, torch
-        from posediff.data.symsol import SymsolDataModule, SymsolRenderer, SCENE_DISTANCE
-        SymsolRenderer(32).render("cube", np.eye(3), np.array([0, 0, SCENE_DISTANCE]))
+        import numpy as np, torch, trimesh
+        from posediff.data.bop.render import BopRenderer
+        from posediff.data.symsol import SymsolDataModule
+        gl = BopRenderer(32, 32)
+        gl.add_model(1, trimesh.creation.box(extents=(50.0, 50.0, 50.0)))
+        K = np.array([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])
+        assert gl.render([(1, np.eye(3), np.array([0.0, 0.0, 300.0]))], K).rgb.any()
         dm = SymsolDataModule("symsolt", mode="render", image_size=32, n_per_shape_train=2, batch_size=5, num_workers=2)
         dm.setup("fit")
         n = sum(len(b["image"]) for b in dm.train_dataloader())
