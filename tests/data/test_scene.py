@@ -14,7 +14,7 @@ from PIL import Image
 from posediff.data.official.symsolt import SymsoltOfficialDataModule, _Records, _split_folder
 from posediff.data.symsol import SCENE_DISTANCE, Look, SymsolRenderer, SymsolShards, render_dataset
 from posediff.data.symsol.poses import haar_rotations
-from posediff.data.symsol.render import _planes, cast
+from posediff.data.symsol.render import _planes, cast, cast_planes
 from posediff.data.symsol.shards import MetaFileError, image_look
 from posediff.nn.pose_encoder import filled_area
 from posediff.symmetry import SHAPES
@@ -72,16 +72,10 @@ def test_round_solids_cast_as_their_facets(shape: str) -> None:
     for R in haar_rotations(rng, 6):
         t = np.array([*rng.uniform(-1, 1, 2), SCENE_DISTANCE + rng.uniform(-1, 1)])
         hit, z, n = cast(shape, R, t, rays)
-        Nc, hc = N @ R.T, h + (N @ R.T) @ t
-        nd = rays @ Nc.T
-        with np.errstate(divide="ignore"):
-            tau = hc / nd
-        enter = np.where(nd < 0, tau, -np.inf)
-        ref_hit = enter.max(1) < np.where(nd > 0, tau, np.inf).min(1)
+        ref_hit, ref_z, face_normals = cast_planes(N, h, R, t, rays)  # the 360 facets' half-spaces
         assert (hit != ref_hit).sum() <= 3 and hit.sum() > 100
         both = hit & ref_hit
-        np.testing.assert_allclose(z[both], enter.max(1)[both], atol=0.01)  # grazing rays: chord vs arc
-        face_normals = Nc[enter.argmax(1)]
+        np.testing.assert_allclose(z[both], ref_z[both], atol=0.01)  # grazing rays: chord vs arc
         agree = np.einsum("pi,pi->p", n[both], face_normals[both]) > np.cos(np.radians(1.01))
         assert agree.mean() > 0.99
 
@@ -149,5 +143,6 @@ def test_filled_area_ignores_dark_faces_light_and_background() -> None:
     g[0, 10:50, 10:50] = 0.8
     g[0, 20:40, 25:35] = 0.0  # a face shaded pure black inside the outline
     assert float(filled_area(g)) == pytest.approx(40 * 40 / 64**2)
-    noisy = g + 0.03 * torch.randn_like(g).abs()  # noise below the contrast, a background of 0.03
+    noise = torch.randn(g.shape, generator=torch.Generator().manual_seed(0)).abs()
+    noisy = g + 0.03 * noise  # noise below the contrast (±0.2 % over 500 seeds), a background of 0.03
     assert float(filled_area(noisy)) == pytest.approx(40 * 40 / 64**2, rel=0.02)

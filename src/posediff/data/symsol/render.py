@@ -231,11 +231,20 @@ def cast(shape: str | int, R: np.ndarray, t: np.ndarray, rays: np.ndarray) -> tu
     ``R``, ``t``: ``hit (P,)`` bool, the depth ``z (P,)`` where hit, and the entry face's camera-frame
     normal ``(P, 3)`` (module docstring)."""
     name = shape_name(shape)
+    R, t = np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
     if name in ("cone", "cyl"):
-        return _cast_round(name, np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64), rays)
+        return _cast_round(name, R, t, rays)
     N, h, _ = _planes(name)
-    Nc = N @ np.asarray(R, dtype=np.float64).T
-    hc = h + Nc @ np.asarray(t, dtype=np.float64)
+    return cast_planes(N, h, R, t, rays)
+
+
+def cast_planes(
+    N: np.ndarray, h: np.ndarray, R: np.ndarray, t: np.ndarray, rays: np.ndarray
+) -> tuple[np.ndarray, ...]:
+    """:func:`cast` against the convex solid ``N·x ≤ h`` (object frame) at the pose ``R``, ``t``: the
+    ray enters through the face of the largest ``hₖ / nₖ·d`` among those it meets from outside."""
+    Nc = N @ R.T
+    hc = h + Nc @ t
     nd = rays @ Nc.T
     with np.errstate(divide="ignore", invalid="ignore"):
         tau = hc[None, :] / nd
@@ -400,6 +409,7 @@ __all__ = [
     "Rendered",
     "SymsolRenderer",
     "cast",
+    "cast_planes",
     "intrinsics",
     "prepare_gl",
     "shade",

@@ -63,9 +63,8 @@ def _mesh(shape: str):  # noqa: ANN202
     import trimesh
 
     s = SHAPE_SIZE
-    if shape == "tet":
-        v = np.array([(1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)], dtype=np.float64)
-        mesh = _hull(v * (s / 1.3) / math.sqrt(3.0))
+    if shape == "tet":  # Open3D's create_tetrahedron(radius): the circumradius
+        mesh = _hull(_posediff_vertex_directions("tet") * (s / 1.3))
     elif shape == "cube":
         mesh = trimesh.creation.box(extents=(s, s, s))
     elif shape == "icosa":  # Open3D's create_icosahedron(radius): radius times (0, ±1, ±φ), unnormalised
