@@ -3,9 +3,9 @@
     OMP_WAIT_POLICY=PASSIVE python benchmarks/render.py          # 224 px and 64 px
     python benchmarks/render.py --quick --out /tmp/render.json    # smoke run
 
-What is timed (SYMSOL-T uniform poses, all five shapes interleaved, Mesa's software EGL):
+What is timed (SYMSOL-T uniform poses, all five shapes interleaved; scene 2 ray casts in NumPy, no GL):
 
-* **render** — ``SymsolRenderer.render`` alone in this process (RGB + depth read back);
+* **render** — ``SymsolRenderer.render`` alone in this process (RGB + depth);
 * **shards, 1 / 2 processes** — ``render_dataset`` into a temporary folder (render, deflate, write),
   with ``workers=1`` and ``workers=2`` (spawned processes, startup included);
 * **DataLoader, 0 / 2 workers** — batches of 16 from ``SymsolDataModule(mode="render")``, the
